@@ -1,0 +1,212 @@
+//! Uncertainty of planar poses: 3x3 covariance and information matrices, compounding of
+//! uncertain relative poses, Mahalanobis distances, and the information heuristic that the
+//! paper uses for near-singular covariances (its eq. 1, zero-constraints and Chow-Liu weights).
+//!
+//! Compounding follows the first-order "approximate transformations" of Smith, Self and
+//! Cheeseman: the covariance of `a (+) b` is `Ja Ca Ja^T + Jb Cb Jb^T` (plus cross terms when
+//! the two are correlated), with `Ja`, `Jb` the Jacobians of the composition.
+
+use nalgebra::{Cholesky, Matrix3, Vector3};
+
+use super::se2::Se2;
+
+/// Covariance of a pose `[x, y, theta]` (m^2, m rad, rad^2).
+pub type Cov3 = Matrix3<f64>;
+/// Information (inverse covariance) of a pose.
+pub type Info3 = Matrix3<f64>;
+
+/// A pose with its covariance.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct UncertainPose {
+    /// Mean.
+    pub pose: Se2,
+    /// Covariance of `[x, y, theta]`.
+    pub cov: Cov3,
+}
+
+impl UncertainPose {
+    /// A pose known exactly.
+    pub fn exact(pose: Se2) -> UncertainPose {
+        UncertainPose {
+            pose,
+            cov: Cov3::zeros(),
+        }
+    }
+
+    /// Head-to-tail compounding `self (+) rel` of two independent uncertain poses.
+    pub fn compound(&self, rel: &UncertainPose) -> UncertainPose {
+        let (ja, jb) = self.pose.compose_jacobians(&rel.pose);
+        UncertainPose {
+            pose: self.pose.compose(&rel.pose),
+            cov: symmetrize(&(ja * self.cov * ja.transpose() + jb * rel.cov * jb.transpose())),
+        }
+    }
+
+    /// Head-to-tail compounding of two correlated uncertain poses, with
+    /// `cross = E[(a - mean_a)(b - mean_b)^T]`.
+    pub fn compound_correlated(&self, rel: &UncertainPose, cross: &Matrix3<f64>) -> UncertainPose {
+        let (ja, jb) = self.pose.compose_jacobians(&rel.pose);
+        let mixed = ja * cross * jb.transpose();
+        UncertainPose {
+            pose: self.pose.compose(&rel.pose),
+            cov: symmetrize(
+                &(ja * self.cov * ja.transpose()
+                    + jb * rel.cov * jb.transpose()
+                    + mixed
+                    + mixed.transpose()),
+            ),
+        }
+    }
+
+    /// The inverse relation with its covariance.
+    pub fn inverse(&self) -> UncertainPose {
+        let j = self.pose.inverse_jacobian();
+        UncertainPose {
+            pose: self.pose.inverse(),
+            cov: symmetrize(&(j * self.cov * j.transpose())),
+        }
+    }
+
+    /// The relative pose `self^-1 (+) other` of two independent uncertain poses.
+    pub fn between(&self, other: &UncertainPose) -> UncertainPose {
+        let (ja, jb) = self.pose.between_jacobians(&other.pose);
+        UncertainPose {
+            pose: self.pose.between(&other.pose),
+            cov: symmetrize(&(ja * self.cov * ja.transpose() + jb * other.cov * jb.transpose())),
+        }
+    }
+}
+
+/// `(m + m^T) / 2`: removes the rounding asymmetry that products leave behind.
+#[inline]
+pub fn symmetrize(m: &Matrix3<f64>) -> Matrix3<f64> {
+    (m + m.transpose()) * 0.5
+}
+
+/// Inverse of a symmetric positive-definite 3x3 matrix by Cholesky; `None` when it is not
+/// positive definite or not finite.
+pub fn spd_inverse(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
+    if !m.iter().all(|v| v.is_finite()) {
+        return None;
+    }
+    let inv = Cholesky::new(*m)?.inverse();
+    inv.iter().all(|v| v.is_finite()).then(|| symmetrize(&inv))
+}
+
+/// Squared Mahalanobis distance `d^T cov^-1 d`; `None` when `cov` is not positive definite.
+pub fn squared_mahalanobis(d: &Vector3<f64>, cov: &Cov3) -> Option<f64> {
+    let chol = Cholesky::new(*cov)?;
+    let v = chol.solve(d);
+    let r = d.dot(&v);
+    r.is_finite().then_some(r)
+}
+
+/// Squared Mahalanobis distance between two global poses, using their world-frame difference
+/// (angle wrapped) and the covariance `cov` of that difference.
+pub fn pose_squared_mahalanobis(a: &Se2, b: &Se2, cov: &Cov3) -> Option<f64> {
+    squared_mahalanobis(&a.global_difference(b), cov)
+}
+
+/// Smallest eigenvalue ratio (min/max) below which a covariance counts as near-singular.
+pub const NEAR_SINGULAR_RATIO: f64 = 1e-12;
+
+/// Scalar information of a relation with covariance `cov`, after the paper's eq. (1): the
+/// Frobenius norm of the information matrix when the inverse is well defined, and otherwise
+/// `|1 / det(cov)|`, which stays finite as the covariance shrinks towards zero along some
+/// directions. A covariance that is exactly zero has infinite information: we return
+/// `f64::MAX` so that comparisons and spanning trees keep working.
+pub fn information_heuristic(cov: &Cov3) -> f64 {
+    if let Some(info) = well_conditioned_inverse(cov) {
+        return info.norm();
+    }
+    let det = libm::fabs(cov.determinant());
+    if det > 0.0 && det.is_finite() {
+        let v = 1.0 / det;
+        if v.is_finite() {
+            return v;
+        }
+    }
+    f64::MAX
+}
+
+fn well_conditioned_inverse(cov: &Cov3) -> Option<Info3> {
+    let eig = cov.symmetric_eigenvalues();
+    let max = eig.max();
+    let min = eig.min();
+    if max.is_nan() || max <= 0.0 || min <= max * NEAR_SINGULAR_RATIO {
+        return None;
+    }
+    spd_inverse(cov)
+}
+
+/// Information matrix of a zero-constraint: the identity relative pose between two frames of
+/// synchronized sensors, with a tiny standard deviation `sigma_xy` (m) and `sigma_theta` (rad).
+/// The diagonal information is clamped to `max_information` so that the normal equations keep
+/// a usable condition number.
+pub fn zero_constraint_information(sigma_xy: f64, sigma_theta: f64, max_information: f64) -> Info3 {
+    let clamp = |s: f64| {
+        let v = 1.0 / (s * s);
+        if v.is_finite() && v < max_information {
+            v
+        } else {
+            max_information
+        }
+    };
+    Matrix3::from_diagonal(&Vector3::new(
+        clamp(sigma_xy),
+        clamp(sigma_xy),
+        clamp(sigma_theta),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn compounding_exact_poses_has_zero_covariance() {
+        let a = UncertainPose::exact(Se2::new(1.0, 2.0, 0.3));
+        let b = UncertainPose::exact(Se2::new(-0.5, 0.1, 1.0));
+        assert_eq!(a.compound(&b).cov, Cov3::zeros());
+    }
+
+    #[test]
+    fn compounding_translation_rotates_covariance() {
+        // A quarter turn then an uncertain step along x: the uncertainty ends up along y.
+        let a = UncertainPose::exact(Se2::new(0.0, 0.0, core::f64::consts::FRAC_PI_2));
+        let b = UncertainPose {
+            pose: Se2::new(1.0, 0.0, 0.0),
+            cov: Matrix3::from_diagonal(&Vector3::new(0.04, 0.0, 0.0)),
+        };
+        let c = a.compound(&b).cov;
+        assert!((c[(1, 1)] - 0.04).abs() < 1e-15);
+        assert!(c[(0, 0)].abs() < 1e-15);
+    }
+
+    #[test]
+    fn mahalanobis_of_unit_covariance_is_squared_norm() {
+        let d = Vector3::new(1.0, 2.0, 0.5);
+        let m = squared_mahalanobis(&d, &Cov3::identity()).unwrap();
+        assert!((m - d.norm_squared()).abs() < 1e-12);
+        assert!(squared_mahalanobis(&d, &Cov3::zeros()).is_none());
+    }
+
+    #[test]
+    fn heuristic_switches_to_determinant_when_singular() {
+        let good = Matrix3::from_diagonal(&Vector3::new(1.0, 4.0, 0.25));
+        let expected: f64 = Matrix3::from_diagonal(&Vector3::new(1.0, 0.25, 4.0)).norm();
+        assert!((information_heuristic(&good) - expected).abs() < 1e-12);
+        let tiny = Matrix3::from_diagonal(&Vector3::new(1.0, 1e-20, 1.0));
+        assert!((information_heuristic(&tiny) - 1e20).abs() / 1e20 < 1e-9);
+        assert_eq!(information_heuristic(&Cov3::zeros()), f64::MAX);
+    }
+
+    #[test]
+    fn zero_constraint_information_is_clamped() {
+        let i = zero_constraint_information(1e-9, 1e-9, 1e8);
+        assert_eq!(i[(0, 0)], 1e8);
+        let j = zero_constraint_information(0.01, 0.1, 1e8);
+        assert!((j[(0, 0)] - 1e4).abs() < 1e-6);
+        assert!((j[(2, 2)] - 100.0).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,37 @@
+//! # cloi-core
+//!
+//! The algorithms of CLOi-Mapper, a 2D SLAM system for low-cost service robots, in a form that
+//! runs unchanged on a Cortex-A9 without an operating system: `no_std`, no heap, no clock (the
+//! caller passes every timestamp), and no `unsafe`.
+//!
+//! Layers, following the paper's block diagram:
+//! * [`geom`]: SE(2) poses, Jacobians, covariance compounding, Mahalanobis distances, and the
+//!   information heuristic of eq. (1).
+//! * [`storage`]: fixed-capacity pools with typed ids and queues.
+//! * [`profile`]: the memory profiles and the resources value that owns all storage.
+//! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
+//!   instructions on the emulated Cortex-A9.
+#![no_std]
+#![forbid(unsafe_code)]
+#![warn(missing_docs)]
+#![cfg_attr(
+    not(test),
+    warn(
+        clippy::unwrap_used,
+        clippy::expect_used,
+        clippy::panic,
+        clippy::indexing_slicing
+    )
+)]
+
+#[macro_use]
+mod fmt;
+
+pub mod error;
+pub mod geom;
+pub mod profile;
+pub mod storage;
+pub mod workload;
+
+pub use error::CapacityError;
+pub use geom::Se2;

@@ -1,0 +1,151 @@
+//! Memory profiles: the capacities that fix the mapper's static footprint for a class of
+//! deployment, and the resources value that owns all of the mapper's storage.
+//!
+//! The capacities are chosen from the area to be mapped, never from the time driven: pruning
+//! keeps at most a couple of nodes per grid cell, so the pools only have to hold what one
+//! building needs. `cloi-budget` checks at compile time that each profile fits its budget.
+//!
+//! The resources hold placeholder pools until the mapper's layers land; their sizes already
+//! scale with the capacities, so the budget table is meaningful from the start.
+
+use crate::geom::{Cov3, Se2};
+use crate::storage::Slot;
+
+/// The capacities and budget of one deployment class.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ProfileSpec {
+    /// Short name used on the command line (`home`, `office`, `airport`).
+    pub name: &'static str,
+    /// Floor area the profile is sized for, square metres.
+    pub area_m2: u32,
+    /// Static memory budget, bytes.
+    pub budget_bytes: usize,
+    /// Pose-graph nodes.
+    pub max_nodes: usize,
+    /// Pose-graph edges.
+    pub max_edges: usize,
+    /// Occupancy-grid submaps.
+    pub max_submaps: usize,
+    /// Cells per submap (side x side).
+    pub submap_cells: usize,
+}
+
+const MIB: usize = 1024 * 1024;
+
+/// A 330 m^2 home mapped by a cleaning robot: 4.1 m submaps at 5 cm.
+pub const HOME: ProfileSpec = ProfileSpec {
+    name: "home",
+    area_m2: 330,
+    budget_bytes: 16 * MIB,
+    max_nodes: 4096,
+    max_edges: 12288,
+    max_submaps: 96,
+    submap_cells: 82 * 82,
+};
+
+/// A 3,000 m^2 office floor: 10 m submaps at 5 cm.
+pub const OFFICE: ProfileSpec = ProfileSpec {
+    name: "office",
+    area_m2: 3_000,
+    budget_bytes: 64 * MIB,
+    max_nodes: 16384,
+    max_edges: 49152,
+    max_submaps: 160,
+    submap_cells: 200 * 200,
+};
+
+/// A 60,000 m^2 airport hall mapped by a guide robot: 10 m submaps at 10 cm.
+pub const AIRPORT: ProfileSpec = ProfileSpec {
+    name: "airport",
+    area_m2: 60_000,
+    budget_bytes: 200 * MIB,
+    max_nodes: 131072,
+    max_edges: 393216,
+    max_submaps: 1600,
+    submap_cells: 100 * 100,
+};
+
+/// Every built-in profile.
+pub const PROFILES: [ProfileSpec; 3] = [HOME, OFFICE, AIRPORT];
+
+/// A node as the resources store it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NodeRecord {
+    /// Estimated pose.
+    pub pose: Se2,
+    /// Its covariance.
+    pub cov: Cov3,
+}
+
+/// An edge as the resources store it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EdgeRecord {
+    /// Index of the first node.
+    pub from: u32,
+    /// Index of the second node.
+    pub to: u32,
+    /// Measured relative pose.
+    pub measurement: Se2,
+    /// Information of the measurement.
+    pub information: Cov3,
+}
+
+/// All of the mapper's storage, sized by const generics. One value of this type per robot,
+/// typically in a `static`; the mapper borrows it once.
+#[derive(Debug)]
+pub struct MapperResources<
+    const NODES: usize,
+    const EDGES: usize,
+    const SUBMAPS: usize,
+    const CELLS: usize,
+> {
+    /// Node pool storage.
+    pub nodes: [Slot<NodeRecord>; NODES],
+    /// Edge pool storage.
+    pub edges: [Slot<EdgeRecord>; EDGES],
+    /// Occupancy cells of every submap (log-odds in compact integers).
+    pub grid_cells: [[i8; CELLS]; SUBMAPS],
+}
+
+impl<const NODES: usize, const EDGES: usize, const SUBMAPS: usize, const CELLS: usize>
+    MapperResources<NODES, EDGES, SUBMAPS, CELLS>
+{
+    /// Empty resources, usable as a `static` initialiser.
+    pub const fn new() -> Self {
+        MapperResources {
+            nodes: Slot::array::<NODES>(),
+            edges: Slot::array::<EDGES>(),
+            grid_cells: [[0; CELLS]; SUBMAPS],
+        }
+    }
+}
+
+impl<const NODES: usize, const EDGES: usize, const SUBMAPS: usize, const CELLS: usize> Default
+    for MapperResources<NODES, EDGES, SUBMAPS, CELLS>
+{
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Resources of the `home` profile.
+pub type HomeResources = MapperResources<
+    { HOME.max_nodes },
+    { HOME.max_edges },
+    { HOME.max_submaps },
+    { HOME.submap_cells },
+>;
+/// Resources of the `office` profile.
+pub type OfficeResources = MapperResources<
+    { OFFICE.max_nodes },
+    { OFFICE.max_edges },
+    { OFFICE.max_submaps },
+    { OFFICE.submap_cells },
+>;
+/// Resources of the `airport` profile.
+pub type AirportResources = MapperResources<
+    { AIRPORT.max_nodes },
+    { AIRPORT.max_edges },
+    { AIRPORT.max_submaps },
+    { AIRPORT.submap_cells },
+>;

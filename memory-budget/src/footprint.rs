@@ -1,0 +1,115 @@
+//! Static footprint of every memory profile.
+
+use core::mem::size_of;
+
+use cloi_core::profile::{
+    AirportResources, EdgeRecord, HomeResources, NodeRecord, OfficeResources, ProfileSpec, AIRPORT,
+    HOME, OFFICE,
+};
+use cloi_core::storage::Slot;
+
+// The proof: the build fails if a profile's resources exceed its budget on the target being
+// compiled for (host and ARM alike, since pointer widths differ).
+const _: () = assert!(
+    size_of::<HomeResources>() <= HOME.budget_bytes,
+    "home exceeds its budget"
+);
+const _: () = assert!(
+    size_of::<OfficeResources>() <= OFFICE.budget_bytes,
+    "office exceeds its budget"
+);
+const _: () = assert!(
+    size_of::<AirportResources>() <= AIRPORT.budget_bytes,
+    "airport exceeds its budget"
+);
+
+/// One pool of a profile.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PoolRow {
+    /// Pool name.
+    pub name: &'static str,
+    /// Number of elements.
+    pub count: usize,
+    /// Bytes per element.
+    pub element_bytes: usize,
+    /// Total bytes.
+    pub bytes: usize,
+}
+
+/// The footprint of one profile.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ProfileFootprint {
+    /// The profile.
+    pub spec: ProfileSpec,
+    /// `size_of` of its resources value on this target.
+    pub total_bytes: usize,
+    /// Its pools.
+    pub pools: Vec<PoolRow>,
+}
+
+impl ProfileFootprint {
+    /// True when the resources fit the budget.
+    pub fn fits(&self) -> bool {
+        self.total_bytes <= self.spec.budget_bytes
+    }
+}
+
+fn row(name: &'static str, count: usize, element_bytes: usize) -> PoolRow {
+    PoolRow {
+        name,
+        count,
+        element_bytes,
+        bytes: count * element_bytes,
+    }
+}
+
+fn footprint_of(spec: ProfileSpec, total_bytes: usize) -> ProfileFootprint {
+    ProfileFootprint {
+        spec,
+        total_bytes,
+        pools: vec![
+            row("nodes", spec.max_nodes, size_of::<Slot<NodeRecord>>()),
+            row("edges", spec.max_edges, size_of::<Slot<EdgeRecord>>()),
+            row(
+                "grid cells",
+                spec.max_submaps * spec.submap_cells,
+                size_of::<i8>(),
+            ),
+        ],
+    }
+}
+
+/// The footprint of every built-in profile, measured with `size_of` on this target.
+pub fn all_profiles() -> Vec<ProfileFootprint> {
+    vec![
+        footprint_of(HOME, size_of::<HomeResources>()),
+        footprint_of(OFFICE, size_of::<OfficeResources>()),
+        footprint_of(AIRPORT, size_of::<AirportResources>()),
+    ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn pools_add_up_to_the_resources_size() {
+        for p in all_profiles() {
+            let sum: usize = p.pools.iter().map(|r| r.bytes).sum();
+            assert!(
+                sum <= p.total_bytes,
+                "{}: pools {} > total {}",
+                p.spec.name,
+                sum,
+                p.total_bytes
+            );
+            // Padding between fields is small: the table accounts for nearly every byte.
+            assert!(
+                p.total_bytes - sum < 64,
+                "{}: unaccounted bytes",
+                p.spec.name
+            );
+            assert!(p.fits());
+        }
+    }
+}
