@@ -4,3 +4,4 @@
 //! formats, the simulator and evaluation. The algorithms live in [`cloi_core`].
 
 pub mod cli;
+pub mod dataset;
