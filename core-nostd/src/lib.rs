@@ -8,6 +8,9 @@
 //! * [`geom`]: SE(2) poses, Jacobians, covariance compounding, Mahalanobis distances, and the
 //!   information heuristic of eq. (1).
 //! * [`storage`]: fixed-capacity pools with typed ids and queues.
+//! * [`graph`]: the SE(2) pose graph over caller-provided storage.
+//! * [`solver`]: sparse Gauss-Newton / Levenberg-Marquardt with robust kernels and
+//!   max-mixtures.
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
@@ -27,7 +30,9 @@ mod fmt;
 pub mod backend;
 pub mod error;
 pub mod geom;
+pub mod graph;
 pub mod profile;
+pub mod solver;
 pub mod storage;
 pub mod workload;
 

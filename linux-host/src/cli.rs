@@ -19,6 +19,8 @@ pub struct Cli {
 pub enum Command {
     /// Print the static memory footprint of every profile and check it against its budget.
     Budget(cloi_budget::cli::BudgetArgs),
+    /// Optimize a 2D pose graph (g2o or TORO) and report chi2, time and accuracy.
+    Optimize(crate::optimize::OptimizeArgs),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -28,5 +30,6 @@ pub enum Command {
 pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
     match cli.command {
         Command::Budget(args) => cloi_budget::cli::run(&args, out),
+        Command::Optimize(args) => crate::optimize::run(&args, out),
     }
 }

@@ -1,0 +1,184 @@
+//! Numeric block Cholesky factorization `H = L L^T` with 3x3 blocks, left-looking, over the
+//! pattern that [`super::ordering`] computed, and the two triangular solves.
+//!
+//! Column `j` is gathered into a dense block accumulator, updated by every earlier column `k`
+//! with a block in row `j` (found through per-row linked lists of columns, advanced as the
+//! factorization proceeds), then divided by the Cholesky factor of its diagonal block. The
+//! inverse of each diagonal factor is stored, so both solves only multiply.
+
+use super::workspace::{Block, Vec3};
+
+const NONE: u32 = u32::MAX;
+
+/// `acc -= a * b^T`.
+#[inline(always)]
+pub(crate) fn sub_abt(acc: &mut Block, a: &Block, b: &Block) {
+    for r in 0..3 {
+        let (a0, a1, a2) = (a[3 * r], a[3 * r + 1], a[3 * r + 2]);
+        for c in 0..3 {
+            acc[3 * r + c] -= a0 * b[3 * c] + a1 * b[3 * c + 1] + a2 * b[3 * c + 2];
+        }
+    }
+}
+
+/// `a * b^T`.
+#[inline(always)]
+fn mul_abt(a: &Block, b: &Block) -> Block {
+    let mut out = [0.0; 9];
+    for r in 0..3 {
+        for c in 0..3 {
+            out[3 * r + c] =
+                a[3 * r] * b[3 * c] + a[3 * r + 1] * b[3 * c + 1] + a[3 * r + 2] * b[3 * c + 2];
+        }
+    }
+    out
+}
+
+/// `m * v`.
+#[inline(always)]
+pub(crate) fn mul_v(m: &Block, v: &Vec3) -> Vec3 {
+    [
+        m[0] * v[0] + m[1] * v[1] + m[2] * v[2],
+        m[3] * v[0] + m[4] * v[1] + m[5] * v[2],
+        m[6] * v[0] + m[7] * v[1] + m[8] * v[2],
+    ]
+}
+
+/// `m^T * v`.
+#[inline(always)]
+pub(crate) fn mul_tv(m: &Block, v: &Vec3) -> Vec3 {
+    [
+        m[0] * v[0] + m[3] * v[1] + m[6] * v[2],
+        m[1] * v[0] + m[4] * v[1] + m[7] * v[2],
+        m[2] * v[0] + m[5] * v[1] + m[8] * v[2],
+    ]
+}
+
+/// The inverse of the lower Cholesky factor of the symmetric block `a` (lower triangle read),
+/// or `None` when `a` is not positive definite.
+#[inline]
+fn chol_inverse(a: &Block) -> Option<Block> {
+    let d0 = a[0];
+    if !(d0 > 0.0) {
+        return None;
+    }
+    let l00 = libm::sqrt(d0);
+    let l10 = a[3] / l00;
+    let l20 = a[6] / l00;
+    let d1 = a[4] - l10 * l10;
+    if !(d1 > 0.0) {
+        return None;
+    }
+    let l11 = libm::sqrt(d1);
+    let l21 = (a[7] - l20 * l10) / l11;
+    let d2 = a[8] - l20 * l20 - l21 * l21;
+    if !(d2 > 0.0) || !d2.is_finite() {
+        return None;
+    }
+    let l22 = libm::sqrt(d2);
+    let i00 = 1.0 / l00;
+    let i11 = 1.0 / l11;
+    let i22 = 1.0 / l22;
+    let i10 = -l10 * i00 * i11;
+    let i21 = -l21 * i11 * i22;
+    let i20 = -(l20 * i00 + l21 * i10) * i22;
+    Some([i00, 0.0, 0.0, i10, i11, 0.0, i20, i21, i22])
+}
+
+/// Factorizes in place. On entry `diag[j]` holds `H_jj` and `values[p]` the block of `H` at
+/// (`rows[p]`, column of `p`), zero where only fill exists. On exit `values` holds `L` and
+/// `diag[j]` holds `L_jj^-1`.
+///
+/// Returns `Err(j)` with the first column whose pivot block is not positive definite.
+pub(crate) fn factorize(
+    n: usize,
+    col_end: &[u32],
+    rows: &[u32],
+    values: &mut [Block],
+    diag: &mut [Block],
+    work: &mut [Block],
+    row_head: &mut [u32],
+    link: &mut [u32],
+    cursor: &mut [u32],
+) -> Result<(), usize> {
+    for h in row_head.iter_mut().take(n) {
+        *h = NONE;
+    }
+    let mut start = 0usize;
+    for j in 0..n {
+        let end = col_end[j] as usize;
+        work[j] = diag[j];
+        for p in start..end {
+            work[rows[p] as usize] = values[p];
+        }
+        let mut k = row_head[j];
+        while k != NONE {
+            let next_k = link[k as usize];
+            let p = cursor[k as usize] as usize;
+            let kend = col_end[k as usize] as usize;
+            let ljk = values[p];
+            sub_abt(&mut work[j], &ljk, &ljk);
+            for q in p + 1..kend {
+                let r = rows[q] as usize;
+                sub_abt(&mut work[r], &values[q], &ljk);
+            }
+            if p + 1 < kend {
+                cursor[k as usize] = (p + 1) as u32;
+                let r = rows[p + 1] as usize;
+                link[k as usize] = row_head[r];
+                row_head[r] = k;
+            }
+            k = next_k;
+        }
+        let inv = chol_inverse(&work[j]).ok_or(j)?;
+        diag[j] = inv;
+        for p in start..end {
+            values[p] = mul_abt(&work[rows[p] as usize], &inv);
+        }
+        if start < end {
+            cursor[j] = start as u32;
+            let r = rows[start] as usize;
+            link[j] = row_head[r];
+            row_head[r] = j as u32;
+        }
+        start = end;
+    }
+    Ok(())
+}
+
+/// Solves `L L^T x = b` in place (`x` overwrites `b`).
+pub(crate) fn solve_in_place(
+    n: usize,
+    col_end: &[u32],
+    rows: &[u32],
+    values: &[Block],
+    diag: &[Block],
+    b: &mut [Vec3],
+) {
+    let mut start = 0usize;
+    for j in 0..n {
+        let end = col_end[j] as usize;
+        let y = mul_v(&diag[j], &b[j]);
+        b[j] = y;
+        for p in start..end {
+            let r = rows[p] as usize;
+            let d = mul_v(&values[p], &y);
+            b[r][0] -= d[0];
+            b[r][1] -= d[1];
+            b[r][2] -= d[2];
+        }
+        start = end;
+    }
+    for j in (0..n).rev() {
+        let start = if j == 0 { 0 } else { col_end[j - 1] as usize };
+        let end = col_end[j] as usize;
+        let mut acc = b[j];
+        for p in start..end {
+            let d = mul_tv(&values[p], &b[rows[p] as usize]);
+            acc[0] -= d[0];
+            acc[1] -= d[1];
+            acc[2] -= d[2];
+        }
+        b[j] = mul_tv(&diag[j], &acc);
+    }
+}

@@ -1,0 +1,273 @@
+//! Residuals, Jacobians and the assembly of the normal equations `H dx = -g` straight into the
+//! factor's storage.
+//!
+//! For an edge `i -> j` with measurement `z` (angle `a_z`), write `R(a)` for the rotation by
+//! `a`, `t = R(a_i)^T (t_j - t_i)` for the translation of `x_j` seen from `x_i`. The residual is
+//! `e = [R(a_z)^T (t - t_z), wrap(a_j - a_i - a_z)]`; its Jacobians are
+//! `J_j = diag(R(a_i + a_z)^T, 1)` and `J_i = -J_j` plus, in the angle column, the derivative
+//! `R(a_z)^T [t_y, -t_x]` of the translation part.
+
+use super::ordering::{NO_SLOT, TRANSPOSED};
+use super::workspace::{Block, Vec3};
+use crate::geom::{wrap_angle, Se2};
+use crate::graph::{EdgeKind, PoseEdge, PoseNode};
+
+const NONE: u32 = u32::MAX;
+
+/// Residual of a relative edge and the pieces of its Jacobians: `(e, ca, sa, gx, gy)` with
+/// `J_j = [[ca, sa, 0], [-sa, ca, 0], [0, 0, 1]]` and
+/// `J_i = [[-ca, -sa, gx], [sa, -ca, gy], [0, 0, -1]]`.
+#[inline(always)]
+pub(crate) fn relative_residual(
+    xi: &Se2,
+    ci: f64,
+    si: f64,
+    xj: &Se2,
+    z: &Se2,
+    cz: f64,
+    sz: f64,
+) -> (Vec3, [f64; 4]) {
+    let dx = xj.x - xi.x;
+    let dy = xj.y - xi.y;
+    let tx = ci * dx + si * dy;
+    let ty = -si * dx + ci * dy;
+    let ux = tx - z.x;
+    let uy = ty - z.y;
+    let e = [
+        cz * ux + sz * uy,
+        -sz * ux + cz * uy,
+        wrap_angle(xj.theta - xi.theta - z.theta),
+    ];
+    let ca = ci * cz - si * sz;
+    let sa = si * cz + ci * sz;
+    let gx = cz * ty - sz * tx;
+    let gy = -sz * ty - cz * tx;
+    (e, [ca, sa, gx, gy])
+}
+
+/// Residual of a prior `z` on `x`: `e = [R(a_z)^T (t - t_z), wrap(a - a_z)]`, Jacobian
+/// `diag(R(a_z)^T, 1)`.
+#[inline(always)]
+pub(crate) fn prior_residual(x: &Se2, z: &Se2, cz: f64, sz: f64) -> Vec3 {
+    let ux = x.x - z.x;
+    let uy = x.y - z.y;
+    [
+        cz * ux + sz * uy,
+        -sz * ux + cz * uy,
+        wrap_angle(x.theta - z.theta),
+    ]
+}
+
+/// The residual of `edge` at the current poses.
+#[inline(always)]
+pub(crate) fn edge_residual(nodes: &[PoseNode], edge: &PoseEdge, trig: &[f64; 2]) -> Option<Vec3> {
+    let xi = &nodes.get(edge.from.0 as usize)?.pose;
+    if edge.kind == EdgeKind::Prior {
+        return Some(prior_residual(xi, &edge.measurement, trig[0], trig[1]));
+    }
+    let xj = &nodes.get(edge.to.0 as usize)?.pose;
+    let (ci, si) = (libm::cos(xi.theta), libm::sin(xi.theta));
+    Some(relative_residual(xi, ci, si, xj, &edge.measurement, trig[0], trig[1]).0)
+}
+
+/// `e^T M e` for a symmetric block.
+#[inline(always)]
+pub(crate) fn quad(m: &Block, e: &Vec3) -> f64 {
+    m[0] * e[0] * e[0]
+        + m[4] * e[1] * e[1]
+        + m[8] * e[2] * e[2]
+        + 2.0 * (m[1] * e[0] * e[1] + m[2] * e[0] * e[2] + m[5] * e[1] * e[2])
+}
+
+#[inline(always)]
+fn info_block(edge: &PoseEdge) -> Block {
+    let m = &edge.information;
+    [
+        m[(0, 0)],
+        m[(0, 1)],
+        m[(0, 2)],
+        m[(1, 0)],
+        m[(1, 1)],
+        m[(1, 2)],
+        m[(2, 0)],
+        m[(2, 1)],
+        m[(2, 2)],
+    ]
+}
+
+/// Robust cost and plain chi2 of the whole graph.
+pub(crate) fn evaluate(nodes: &[PoseNode], edges: &[PoseEdge], trig: &[[f64; 2]]) -> (f64, f64) {
+    let mut cost = 0.0;
+    let mut chi2 = 0.0;
+    for (edge, t) in edges.iter().zip(trig) {
+        if let Some(e) = edge_residual(nodes, edge, t) {
+            let c = quad(&info_block(edge), &e);
+            chi2 += c;
+            cost += edge.robust.weigh(c).1;
+        }
+    }
+    (cost, chi2)
+}
+
+/// The system being assembled: slices of the solver's workspace.
+pub(crate) struct System<'s> {
+    pub node_var: &'s [u32],
+    pub edge_slot: &'s [u32],
+    pub trig: &'s [[f64; 2]],
+    pub diag: &'s mut [Block],
+    pub values: &'s mut [Block],
+    pub rhs: &'s mut [Vec3],
+}
+
+#[inline(always)]
+fn add(acc: &mut Block, m: &Block) {
+    for (a, v) in acc.iter_mut().zip(m) {
+        *a += v;
+    }
+}
+
+#[inline(always)]
+fn add_t(acc: &mut Block, m: &Block) {
+    for r in 0..3 {
+        for c in 0..3 {
+            acc[3 * r + c] += m[3 * c + r];
+        }
+    }
+}
+
+#[inline(always)]
+fn sub_v(acc: &mut Vec3, v: &Vec3) {
+    acc[0] -= v[0];
+    acc[1] -= v[1];
+    acc[2] -= v[2];
+}
+
+/// Assembles `H` and `-g` at the current poses (with the robust weights of this estimate) and
+/// returns the robust cost and the plain chi2 there.
+pub(crate) fn assemble(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    vars: usize,
+    nnz: usize,
+    s: &mut System<'_>,
+) -> (f64, f64) {
+    for d in s.diag.iter_mut().take(vars) {
+        *d = [0.0; 9];
+    }
+    for v in s.values.iter_mut().take(nnz) {
+        *v = [0.0; 9];
+    }
+    for r in s.rhs.iter_mut().take(vars) {
+        *r = [0.0; 3];
+    }
+    let mut cost = 0.0;
+    let mut chi2 = 0.0;
+    for (k, edge) in edges.iter().enumerate() {
+        let (Some(ni), Some(nj)) = (
+            nodes.get(edge.from.0 as usize),
+            nodes.get(edge.to.0 as usize),
+        ) else {
+            continue;
+        };
+        let [cz, sz] = s.trig[k];
+        let omega = info_block(edge);
+        let pi = s.node_var[edge.from.0 as usize];
+        if edge.kind == EdgeKind::Prior {
+            let e = prior_residual(&ni.pose, &edge.measurement, cz, sz);
+            let c = quad(&omega, &e);
+            let (w, rc) = edge.robust.weigh(c);
+            chi2 += c;
+            cost += rc;
+            if pi == NONE {
+                continue;
+            }
+            let j: Block = [cz, sz, 0.0, -sz, cz, 0.0, 0.0, 0.0, 1.0];
+            let wo = scale(&omega, w);
+            let a = mul(&wo, &j);
+            add(&mut s.diag[pi as usize], &mul_atb(&j, &a));
+            sub_v(&mut s.rhs[pi as usize], &mul_atv(&a, &e));
+            continue;
+        }
+        let xi = &ni.pose;
+        let (ci, si) = (libm::cos(xi.theta), libm::sin(xi.theta));
+        let (e, [ca, sa, gx, gy]) =
+            relative_residual(xi, ci, si, &nj.pose, &edge.measurement, cz, sz);
+        let c = quad(&omega, &e);
+        let (w, rc) = edge.robust.weigh(c);
+        chi2 += c;
+        cost += rc;
+        let pj = s.node_var[edge.to.0 as usize];
+        if pi == NONE && pj == NONE {
+            continue;
+        }
+        let wo = scale(&omega, w);
+        let jj: Block = [ca, sa, 0.0, -sa, ca, 0.0, 0.0, 0.0, 1.0];
+        let ji: Block = [-ca, -sa, gx, sa, -ca, gy, 0.0, 0.0, -1.0];
+        let a = mul(&wo, &jj);
+        if pj != NONE {
+            add(&mut s.diag[pj as usize], &mul_atb(&jj, &a));
+            sub_v(&mut s.rhs[pj as usize], &mul_atv(&a, &e));
+        }
+        if pi != NONE {
+            let bi = mul(&wo, &ji);
+            add(&mut s.diag[pi as usize], &mul_atb(&ji, &bi));
+            sub_v(&mut s.rhs[pi as usize], &mul_atv(&bi, &e));
+            let slot = s.edge_slot[k];
+            if pj != NONE && slot != NO_SLOT {
+                let hij = mul_atb(&ji, &a);
+                let idx = (slot & !TRANSPOSED) as usize;
+                if slot & TRANSPOSED == 0 {
+                    add(&mut s.values[idx], &hij);
+                } else {
+                    add_t(&mut s.values[idx], &hij);
+                }
+            }
+        }
+    }
+    (cost, chi2)
+}
+
+#[inline(always)]
+fn scale(m: &Block, w: f64) -> Block {
+    let mut out = *m;
+    if w != 1.0 {
+        for v in out.iter_mut() {
+            *v *= w;
+        }
+    }
+    out
+}
+
+/// `a * b`.
+#[inline(always)]
+fn mul(a: &Block, b: &Block) -> Block {
+    let mut out = [0.0; 9];
+    for r in 0..3 {
+        for c in 0..3 {
+            out[3 * r + c] = a[3 * r] * b[c] + a[3 * r + 1] * b[3 + c] + a[3 * r + 2] * b[6 + c];
+        }
+    }
+    out
+}
+
+/// `a^T * b`.
+#[inline(always)]
+fn mul_atb(a: &Block, b: &Block) -> Block {
+    let mut out = [0.0; 9];
+    for r in 0..3 {
+        for c in 0..3 {
+            out[3 * r + c] = a[r] * b[c] + a[3 + r] * b[3 + c] + a[6 + r] * b[6 + c];
+        }
+    }
+    out
+}
+
+/// `a^T * v`.
+#[inline(always)]
+fn mul_atv(a: &Block, v: &Vec3) -> Vec3 {
+    [
+        a[0] * v[0] + a[3] * v[1] + a[6] * v[2],
+        a[1] * v[0] + a[4] * v[1] + a[7] * v[2],
+        a[2] * v[0] + a[5] * v[1] + a[8] * v[2],
+    ]
+}

@@ -1,0 +1,468 @@
+//! Nonlinear least squares on a [`PoseGraph`]: Gauss-Newton and Levenberg-Marquardt over a
+//! sparse block Cholesky factorization, with robust kernels and max-mixtures (the optimization
+//! step of the paper's back-end, its eq. 10).
+//!
+//! Per solve:
+//! 1. **Analyse** (only when the graph's structure changed since the last solve with this
+//!    workspace): number the free nodes, order them by minimum degree, record the factor's
+//!    block pattern and where every edge's block goes ([`ordering`]).
+//! 2. **Iterate**: pick robust weights and max-mixture components at the current estimate,
+//!    assemble `H dx = -g` directly into the factor's storage, factorize ([`cholesky`]), solve,
+//!    update `x += dx` (angles wrapped).
+//!
+//! Gauge: the first node is held fixed unless the graph has a prior edge; nodes flagged
+//! `fixed` never move.
+//!
+//! Stopping rules (`cost` is the robust cost, equal to the chi2 without robust models):
+//! * **Gauss-Newton**: converged when an iteration lowers the cost by less than
+//!   `relative_tolerance * cost` (an increase counts as not converged), or when the largest
+//!   step component is below `step_tolerance`. Diverged when the cost becomes non-finite or
+//!   exceeds `divergence_factor` times the initial cost.
+//! * **Levenberg-Marquardt** (Nielsen's damping update, `H + lambda I`, `lambda` starting at
+//!   `1e-5 * max diag(H)`): a step is kept only if it lowers the cost; converged when an
+//!   accepted step lowers the cost by less than `relative_tolerance * cost`, when the step is
+//!   below `step_tolerance`, or when ten consecutive steps are rejected (no descent left at
+//!   this precision).
+//! * Either way `max_iterations` linear solves are the limit; reaching it without convergence
+//!   is [`SolveError::MaxIterations`]. The graph always holds the last (best, for LM) estimate.
+
+mod cholesky;
+mod linearize;
+mod ordering;
+mod workspace;
+
+pub use workspace::{AnalysisKey, Block, SolverBuffers, SolverWorkspace, Vec3};
+
+use core::fmt;
+
+use crate::graph::{PoseGraph, PoseNode};
+use crate::geom::wrap_angle;
+use crate::storage::NodeId;
+
+pub(crate) use linearize::{prior_residual, relative_residual};
+
+/// The iteration scheme.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Method {
+    /// Undamped Gauss-Newton.
+    GaussNewton,
+    /// Levenberg-Marquardt with Nielsen's damping update.
+    LevenbergMarquardt,
+}
+
+/// Options of [`solve`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SolverOptions {
+    /// Iteration scheme.
+    pub method: Method,
+    /// Most linear solves.
+    pub max_iterations: u32,
+    /// Converged when one iteration lowers the cost by less than this fraction.
+    pub relative_tolerance: f64,
+    /// Converged when no step component exceeds this (metres / radians).
+    pub step_tolerance: f64,
+    /// Gauss-Newton diverged when the cost exceeds this multiple of the initial cost.
+    pub divergence_factor: f64,
+}
+
+impl Default for SolverOptions {
+    fn default() -> Self {
+        SolverOptions {
+            method: Method::GaussNewton,
+            max_iterations: 100,
+            relative_tolerance: 1e-8,
+            step_tolerance: 1e-10,
+            divergence_factor: 1e6,
+        }
+    }
+}
+
+/// What a solve did.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SolveReport {
+    /// Linear solves performed.
+    pub iterations: u32,
+    /// Robust cost at the start.
+    pub initial_cost: f64,
+    /// Robust cost at the end.
+    pub final_cost: f64,
+    /// Sum of `e^T Omega e` over all edges at the start (robust models ignored).
+    pub initial_chi2: f64,
+    /// The same at the end.
+    pub final_chi2: f64,
+    /// Whether a stopping rule other than the iteration limit ended the solve.
+    pub converged: bool,
+    /// Free nodes (variables).
+    pub variables: usize,
+    /// Off-diagonal 3x3 blocks of the factor.
+    pub factor_blocks: usize,
+    /// Whether this solve had to compute the ordering.
+    pub analyzed: bool,
+}
+
+/// Why a solve failed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum SolveError {
+    /// The graph, or its factor, does not fit the workspace.
+    Capacity {
+        /// `"nodes"`, `"edges"` or `"factor blocks"`.
+        what: &'static str,
+        /// The workspace's capacity.
+        capacity: usize,
+    },
+    /// An edge names a node outside the graph.
+    InvalidGraph,
+    /// The system is not positive definite at this node (a node without constraints, or a
+    /// degenerate information matrix) even with damping.
+    NotPositiveDefinite(NodeId),
+    /// The cost became non-finite or grew beyond the divergence limit.
+    Diverged,
+    /// The iteration limit was reached before a stopping rule held.
+    MaxIterations,
+}
+
+impl fmt::Display for SolveError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            SolveError::Capacity { what, capacity } => {
+                write!(f, "the solver workspace holds at most {capacity} {what}")
+            }
+            SolveError::InvalidGraph => write!(f, "an edge refers to a node outside the graph"),
+            SolveError::NotPositiveDefinite(n) => {
+                write!(f, "the system is not positive definite at node {}", n.0)
+            }
+            SolveError::Diverged => write!(f, "the optimization diverged"),
+            SolveError::MaxIterations => write!(f, "the iteration limit was reached"),
+        }
+    }
+}
+
+impl core::error::Error for SolveError {}
+
+/// A failed solve: the error and what was done up to it (the graph holds the last estimate).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SolveFailure {
+    /// Why it failed.
+    pub error: SolveError,
+    /// The report up to the failure.
+    pub report: SolveReport,
+}
+
+impl fmt::Display for SolveFailure {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "{} after {} iterations (chi2 {:.6})",
+            self.error, self.report.iterations, self.report.final_chi2
+        )
+    }
+}
+
+impl core::error::Error for SolveFailure {}
+
+/// Optimizes the poses of `graph` in place.
+///
+/// # Errors
+/// [`SolveFailure`] with the [`SolveError`] and the report so far; the graph then holds the
+/// last estimate (for Levenberg-Marquardt, the best one).
+pub fn solve(
+    graph: &mut PoseGraph<'_>,
+    ws: &mut SolverBuffers<'_>,
+    options: &SolverOptions,
+) -> Result<SolveReport, SolveFailure> {
+    let mut report = SolveReport::default();
+    let fail = |error, report| Err(SolveFailure { error, report });
+    let (nodes, edges) = graph.split_mut();
+    let n = nodes.len();
+    let node_lens = [
+        ws.node_var.len(),
+        ws.var_node.len(),
+        ws.col_end.len(),
+        ws.diag.len(),
+        ws.work.len(),
+        ws.rhs.len(),
+        ws.step.len(),
+        ws.saved.len(),
+    ];
+    if node_lens.iter().chain(ws.scratch.iter().map(|s| s.len()).collect::<Lens>().0.iter()).any(|&l| l < n) {
+        return fail(
+            SolveError::Capacity {
+                what: "nodes",
+                capacity: ws.node_capacity(),
+            },
+            report,
+        );
+    }
+    if edges.len() > ws.edge_slot.len() || edges.len() > ws.edge_trig.len() {
+        return fail(
+            SolveError::Capacity {
+                what: "edges",
+                capacity: ws.edge_capacity(),
+            },
+            report,
+        );
+    }
+    if ws.values.len() < ws.rows.len() {
+        return fail(
+            SolveError::Capacity {
+                what: "factor blocks",
+                capacity: ws.values.len(),
+            },
+            report,
+        );
+    }
+    for e in edges.iter() {
+        if e.from.0 as usize >= nodes.len() || e.to.0 as usize >= nodes.len() {
+            return fail(SolveError::InvalidGraph, report);
+        }
+    }
+
+    // 1. Structure.
+    let gauge_first = ordering::gauge_fixes_first(edges);
+    let fp = ordering::fingerprint(nodes, edges, gauge_first);
+    let key = *ws.key;
+    if !(key.valid && key.nodes == nodes.len() && key.edges == edges.len() && key.fingerprint == fp)
+    {
+        ws.key.valid = false;
+        if let Err(e) = ordering::analyze(nodes, edges, gauge_first, ws) {
+            return fail(e, report);
+        }
+        ws.key.nodes = nodes.len();
+        ws.key.edges = edges.len();
+        ws.key.fingerprint = fp;
+        ws.key.valid = true;
+        report.analyzed = true;
+    }
+    let vars = ws.key.vars;
+    let nnz = ws.key.nnz;
+    report.variables = vars;
+    report.factor_blocks = nnz;
+    for (t, e) in ws.edge_trig.iter_mut().zip(edges.iter()) {
+        *t = [libm::cos(e.measurement.theta), libm::sin(e.measurement.theta)];
+    }
+
+    // 2. Iterations.
+    let (cost0, chi0) = linearize::evaluate(nodes, edges, ws.edge_trig);
+    report.initial_cost = cost0;
+    report.initial_chi2 = chi0;
+    report.final_cost = cost0;
+    report.final_chi2 = chi0;
+    if !cost0.is_finite() {
+        return fail(SolveError::Diverged, report);
+    }
+    if vars == 0 {
+        report.converged = true;
+        return Ok(report);
+    }
+    let result = match options.method {
+        Method::GaussNewton => gauss_newton(nodes, edges, ws, options, &mut report),
+        Method::LevenbergMarquardt => levenberg_marquardt(nodes, edges, ws, options, &mut report),
+    };
+    match result {
+        Ok(()) => Ok(report),
+        Err(error) => fail(error, report),
+    }
+}
+
+/// The lengths of the scratch arrays.
+struct Lens([usize; 6]);
+
+impl FromIterator<usize> for Lens {
+    fn from_iter<T: IntoIterator<Item = usize>>(iter: T) -> Self {
+        let mut out = [0; 6];
+        for (o, v) in out.iter_mut().zip(iter) {
+            *o = v;
+        }
+        Lens(out)
+    }
+}
+
+/// Assembles at the current estimate, adds `lambda` to the diagonal (a negative `lambda` means
+/// `1e-5` times the largest diagonal entry of `H`), factorizes and solves; the step is left in
+/// `ws.rhs` (by position). Returns the robust cost and chi2 at the estimate and the damping
+/// used.
+fn linear_step(
+    nodes: &[PoseNode],
+    edges: &[crate::graph::PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    lambda: f64,
+    saved_rhs: bool,
+) -> Result<(f64, f64, f64), SolveError> {
+    let vars = ws.key.vars;
+    let nnz = ws.key.nnz;
+    let (cost, chi2) = linearize::assemble(
+        nodes,
+        edges,
+        vars,
+        nnz,
+        &mut linearize::System {
+            node_var: ws.node_var,
+            edge_slot: ws.edge_slot,
+            trig: ws.edge_trig,
+            diag: ws.diag,
+            values: ws.values,
+            rhs: ws.rhs,
+        },
+    );
+    let mut lambda = lambda;
+    if lambda < 0.0 {
+        let mut max_diag: f64 = 0.0;
+        for d in ws.diag.iter().take(vars) {
+            max_diag = max_diag.max(d[0]).max(d[4]).max(d[8]);
+        }
+        lambda = 1e-5 * max_diag.max(1e-12);
+    }
+    for d in ws.diag.iter_mut().take(vars) {
+        if lambda > 0.0 {
+            d[0] += lambda;
+            d[4] += lambda;
+            d[8] += lambda;
+        }
+    }
+    if saved_rhs {
+        // Keep -g for the gain ratio of Levenberg-Marquardt.
+        ws.step[..vars].copy_from_slice(&ws.rhs[..vars]);
+    }
+    let [row_head, link, cursor, ..] = &mut ws.scratch;
+    if let Err(col) = cholesky::factorize(
+        vars, ws.col_end, ws.rows, ws.values, ws.diag, ws.work, row_head, link, cursor,
+    ) {
+        let node = ws.var_node.get(col).copied().unwrap_or(0);
+        return Err(SolveError::NotPositiveDefinite(NodeId(node)));
+    }
+    cholesky::solve_in_place(vars, ws.col_end, ws.rows, ws.values, ws.diag, ws.rhs);
+    Ok((cost, chi2, lambda))
+}
+
+/// `x += dx` for every free node; returns the largest step component.
+fn apply_step(nodes: &mut [PoseNode], var_node: &[u32], dx: &[Vec3], vars: usize) -> f64 {
+    let mut largest: f64 = 0.0;
+    for (pos, d) in dx.iter().enumerate().take(vars) {
+        if let Some(n) = var_node.get(pos).and_then(|&i| nodes.get_mut(i as usize)) {
+            n.pose.x += d[0];
+            n.pose.y += d[1];
+            n.pose.theta = wrap_angle(n.pose.theta + d[2]);
+            largest = largest.max(libm::fabs(d[0])).max(libm::fabs(d[1])).max(libm::fabs(d[2]));
+        }
+    }
+    if largest.is_finite() {
+        largest
+    } else {
+        f64::INFINITY
+    }
+}
+
+fn gauss_newton(
+    nodes: &mut [PoseNode],
+    edges: &[crate::graph::PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    options: &SolverOptions,
+    report: &mut SolveReport,
+) -> Result<(), SolveError> {
+    let vars = ws.key.vars;
+    let limit = options.divergence_factor * report.initial_cost.max(1.0);
+    let mut cost = report.initial_cost;
+    while report.iterations < options.max_iterations {
+        linear_step(nodes, edges, ws, 0.0, false)?;
+        report.iterations += 1;
+        let largest = apply_step(nodes, ws.var_node, ws.rhs, vars);
+        let (new_cost, new_chi2) = linearize::evaluate(nodes, edges, ws.edge_trig);
+        report.final_cost = new_cost;
+        report.final_chi2 = new_chi2;
+        if !new_cost.is_finite() || new_cost > limit {
+            return Err(SolveError::Diverged);
+        }
+        let decrease = cost - new_cost;
+        cost = new_cost;
+        if largest < options.step_tolerance
+            || (decrease >= 0.0 && decrease <= options.relative_tolerance * new_cost)
+        {
+            report.converged = true;
+            return Ok(());
+        }
+    }
+    Err(SolveError::MaxIterations)
+}
+
+fn levenberg_marquardt(
+    nodes: &mut [PoseNode],
+    edges: &[crate::graph::PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    options: &SolverOptions,
+    report: &mut SolveReport,
+) -> Result<(), SolveError> {
+    let vars = ws.key.vars;
+    let n = nodes.len();
+    let mut cost = report.initial_cost;
+    let mut lambda: f64 = -1.0;
+    let mut nu = 2.0;
+    let mut rejections = 0u32;
+    while report.iterations < options.max_iterations {
+        ws.saved[..n]
+            .iter_mut()
+            .zip(nodes.iter())
+            .for_each(|(s, node)| *s = node.pose);
+        let step = linear_step(nodes, edges, ws, lambda, true);
+        report.iterations += 1;
+        match step {
+            Ok((_, _, used)) => lambda = used,
+            Err(SolveError::NotPositiveDefinite(_)) if lambda > 0.0 => {
+                lambda *= nu;
+                nu *= 2.0;
+                rejections += 1;
+                if rejections >= 10 {
+                    report.converged = true;
+                    return Ok(());
+                }
+                continue;
+            }
+            Err(e) => return Err(e),
+        }
+        // Predicted decrease: dx^T (lambda dx - g), with -g saved in ws.step.
+        let mut predicted = 0.0;
+        for (d, mg) in ws.rhs.iter().zip(ws.step.iter()).take(vars) {
+            for c in 0..3 {
+                predicted += d[c] * (lambda * d[c] + mg[c]);
+            }
+        }
+        let largest = apply_step(nodes, ws.var_node, ws.rhs, vars);
+        let (new_cost, new_chi2) = linearize::evaluate(nodes, edges, ws.edge_trig);
+        let rho = if predicted > 0.0 {
+            (cost - new_cost) / predicted
+        } else {
+            -1.0
+        };
+        if new_cost.is_finite() && new_cost < cost && rho > 0.0 {
+            let decrease = cost - new_cost;
+            cost = new_cost;
+            report.final_cost = new_cost;
+            report.final_chi2 = new_chi2;
+            rejections = 0;
+            let t = 2.0 * rho - 1.0;
+            lambda *= (1.0 - t * t * t).max(1.0 / 3.0);
+            nu = 2.0;
+            if largest < options.step_tolerance || decrease <= options.relative_tolerance * cost
+            {
+                report.converged = true;
+                return Ok(());
+            }
+        } else {
+            for (node, s) in nodes.iter_mut().zip(ws.saved.iter()) {
+                node.pose = *s;
+            }
+            lambda *= nu;
+            nu *= 2.0;
+            rejections += 1;
+            if rejections >= 10 || largest < options.step_tolerance {
+                report.converged = true;
+                return Ok(());
+            }
+        }
+    }
+    Err(SolveError::MaxIterations)
+}
+
+#[cfg(test)]
+mod tests;
