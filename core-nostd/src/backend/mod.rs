@@ -6,4 +6,5 @@ pub mod cells;
 pub mod chow_liu;
 pub mod dense;
 pub mod marginalize;
+pub mod prune;
 pub mod temporal;
