@@ -21,6 +21,9 @@ pub enum Command {
     Budget(cloi_budget::cli::BudgetArgs),
     /// Optimize a 2D pose graph (g2o or TORO) and report chi2, time and accuracy.
     Optimize(crate::optimize::OptimizeArgs),
+    /// Prune a pose graph to about one node per grid cell (marginalization and Chow-Liu trees),
+    /// optimize it, and report sizes and ARPS (the paper's Table III).
+    Prune(crate::prune::PruneArgs),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -31,5 +34,6 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
     match cli.command {
         Command::Budget(args) => cloi_budget::cli::run(&args, out),
         Command::Optimize(args) => crate::optimize::run(&args, out),
+        Command::Prune(args) => crate::prune::run(&args, out),
     }
 }

@@ -7,3 +7,4 @@ pub mod cli;
 pub mod dataset;
 pub mod graph_io;
 pub mod optimize;
+pub mod prune;

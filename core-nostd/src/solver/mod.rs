@@ -28,15 +28,17 @@
 
 mod cholesky;
 mod linearize;
+mod marginals;
 mod ordering;
 mod workspace;
 
+pub use marginals::marginal_information_traces;
 pub use workspace::{AnalysisKey, Block, SolverBuffers, SolverWorkspace, Vec3};
 
 use core::fmt;
 
-use crate::graph::{PoseGraph, PoseNode};
 use crate::geom::wrap_angle;
+use crate::graph::{PoseGraph, PoseNode};
 use crate::storage::NodeId;
 
 pub(crate) use linearize::{prior_residual, relative_residual};
@@ -186,7 +188,18 @@ pub fn solve(
         ws.step.len(),
         ws.saved.len(),
     ];
-    if node_lens.iter().chain(ws.scratch.iter().map(|s| s.len()).collect::<Lens>().0.iter()).any(|&l| l < n) {
+    if node_lens
+        .iter()
+        .chain(
+            ws.scratch
+                .iter()
+                .map(|s| s.len())
+                .collect::<Lens>()
+                .0
+                .iter(),
+        )
+        .any(|&l| l < n)
+    {
         return fail(
             SolveError::Capacity {
                 what: "nodes",
@@ -240,7 +253,10 @@ pub fn solve(
     report.variables = vars;
     report.factor_blocks = nnz;
     for (t, e) in ws.edge_trig.iter_mut().zip(edges.iter()) {
-        *t = [libm::cos(e.measurement.theta), libm::sin(e.measurement.theta)];
+        *t = [
+            libm::cos(e.measurement.theta),
+            libm::sin(e.measurement.theta),
+        ];
     }
 
     // 2. Iterations.
@@ -344,7 +360,10 @@ fn apply_step(nodes: &mut [PoseNode], var_node: &[u32], dx: &[Vec3], vars: usize
             n.pose.x += d[0];
             n.pose.y += d[1];
             n.pose.theta = wrap_angle(n.pose.theta + d[2]);
-            largest = largest.max(libm::fabs(d[0])).max(libm::fabs(d[1])).max(libm::fabs(d[2]));
+            largest = largest
+                .max(libm::fabs(d[0]))
+                .max(libm::fabs(d[1]))
+                .max(libm::fabs(d[2]));
         }
     }
     if largest.is_finite() {
@@ -443,8 +462,7 @@ fn levenberg_marquardt(
             let t = 2.0 * rho - 1.0;
             lambda *= (1.0 - t * t * t).max(1.0 / 3.0);
             nu = 2.0;
-            if largest < options.step_tolerance || decrease <= options.relative_tolerance * cost
-            {
+            if largest < options.step_tolerance || decrease <= options.relative_tolerance * cost {
                 report.converged = true;
                 return Ok(());
             }

@@ -1,0 +1,320 @@
+//! `cloi prune`: the paper's Table III experiment on a pose graph. Optimize the full graph,
+//! prune it to about one node per grid cell (marginalization + Chow-Liu trees), optimize the
+//! pruned graph with the same solver, and report sizes, density and ARPS.
+
+use std::io::Write;
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use cloi_core::backend::cells::{CellCandidate, CellKey, CellParams};
+use cloi_core::backend::prune::{self, PruneParams, PruneReport, PruneScratch, Weighting};
+use cloi_core::geom::Se2;
+use cloi_core::graph::{PoseEdge, PoseGraph, PoseNode};
+use cloi_core::solver::{Method, SolverOptions};
+use serde::Serialize;
+
+use crate::graph_io::{self, FileEdge, GraphFile, GraphFormat};
+use crate::optimize::HostWorkspace;
+
+/// The information term of the node weight.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WeightArg {
+    /// Eq. (3): trace of the node's marginal information.
+    Eq3,
+    /// Eq. (4): sum of the information of the node's edges.
+    Eq4,
+}
+
+/// Options of `cloi prune`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct PruneArgs {
+    /// Input pose graph (g2o or TORO).
+    pub input: PathBuf,
+    /// Input format (default: from the file's first record).
+    #[arg(long, value_enum)]
+    pub format: Option<GraphFormat>,
+    /// Grid cell size, metres.
+    #[arg(long)]
+    pub cell: f64,
+    /// Information term of the node weight.
+    #[arg(long, value_enum, default_value_t = WeightArg::Eq4)]
+    pub weight: WeightArg,
+    /// Share of the information term in the weight (the paper's s).
+    #[arg(long, default_value_t = 0.5)]
+    pub s: f64,
+    /// Initial guess from the file's vertices (default) or chained odometry.
+    #[arg(long)]
+    pub odometry_init: bool,
+    /// Write the pruned, optimized graph here (g2o).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Write the JSON report here.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
+}
+
+/// The JSON report of `cloi prune`.
+#[derive(Debug, Clone, Serialize)]
+pub struct PruneJson {
+    /// Input file.
+    pub file: String,
+    /// Cell size, metres.
+    pub cell_m: f64,
+    /// Weight used.
+    pub weight: WeightArg,
+    /// Share of the information term.
+    pub s: f64,
+    /// Nodes of the full graph.
+    pub nodes_before: usize,
+    /// Edges of the full graph.
+    pub edges_before: usize,
+    /// Nodes after pruning.
+    pub nodes_after: usize,
+    /// Edges after pruning.
+    pub edges_after: usize,
+    /// Mean kept nodes per occupied cell (cells of the pruned, optimized graph).
+    pub nodes_per_cell_mean: f64,
+    /// Most kept nodes in one cell.
+    pub nodes_per_cell_max: usize,
+    /// Edges per node, `edges_after / nodes_after` (the paper's ratio).
+    pub edges_per_node_mean: f64,
+    /// Most edges touching one node (its degree).
+    pub edges_per_node_max: usize,
+    /// Average relative position shift of the kept nodes, percent (see `arps`).
+    pub arps_percent: f64,
+    /// Kept nodes left out of ARPS because they sit at the origin of the full solution.
+    pub arps_nodes_at_origin: usize,
+    /// Time to prune (weights, cells, eliminations, compaction), milliseconds.
+    pub prune_ms: f64,
+    /// Time to optimize the pruned graph, milliseconds.
+    pub optimize_ms: f64,
+    /// Time to optimize the full graph first (not part of the paper's figure), milliseconds.
+    pub full_optimize_ms: f64,
+    /// Details of the pruning pass.
+    pub eliminated: usize,
+    /// Nodes the cell rule dropped but that could not be eliminated.
+    pub kept_not_eliminable: usize,
+    /// Tree edges added / merged into existing edges.
+    pub tree_edges_added: usize,
+    /// Tree edges merged into existing edges.
+    pub tree_edges_merged: usize,
+    /// Outlier loop closures dropped during elimination.
+    pub outliers_dropped: usize,
+}
+
+/// ARPS, the average relative pose shift: the mean over kept nodes of
+/// `|t_original - t_pruned| / |t_original| * 100`, where `t_original` is the node's position
+/// in the optimized full graph. A node whose original position is within 1 mm of the origin
+/// (in practice the gauge node, which never moves) has no meaningful relative shift and is left
+/// out; the count left out is returned with the value. `None` when no node counts.
+pub fn arps(original: &[Se2], pruned: &[Se2]) -> Option<(f64, usize)> {
+    let mut sum = 0.0;
+    let mut used = 0usize;
+    let mut at_origin = 0usize;
+    for (o, p) in original.iter().zip(pruned) {
+        let norm = o.x.hypot(o.y);
+        if norm < 1e-3 {
+            at_origin += 1;
+            continue;
+        }
+        sum += (o.x - p.x).hypot(o.y - p.y) / norm;
+        used += 1;
+    }
+    (used > 0).then(|| (100.0 * sum / used as f64, at_origin))
+}
+
+/// Runs the experiment; returns the report and the pruned graph's poses and edges.
+///
+/// # Errors
+/// Unreadable input, a failed full solve, or bad parameters.
+pub fn prune_file(args: &PruneArgs) -> Result<(PruneJson, Vec<Se2>, Vec<PoseEdge>)> {
+    if !(args.cell > 0.0 && args.cell.is_finite()) {
+        bail!(
+            "--cell must be a positive number of metres, got {}",
+            args.cell
+        );
+    }
+    if !(0.0..=1.0).contains(&args.s) {
+        bail!("--s must be within 0..=1, got {}", args.s);
+    }
+    let file = graph_io::read_graph(&args.input, args.format)?;
+    let init = if args.odometry_init {
+        file.odometry_guess()
+    } else {
+        file.poses.clone()
+    };
+    let nodes = file.pose_nodes(&init);
+    let edges = file.pose_edges();
+    let (n, m) = (nodes.len(), edges.len());
+    // Room for the tree edges that pruning adds before it compacts.
+    let edge_capacity = m + n + 64;
+    let mut node_store = vec![PoseNode::EMPTY; n];
+    let mut edge_store = vec![PoseEdge::EMPTY; edge_capacity];
+    let mut g = PoseGraph::new(&mut node_store, &mut edge_store);
+    for node in nodes {
+        g.add_node_full(node)?;
+    }
+    for (k, e) in edges.into_iter().enumerate() {
+        g.add_edge(e)
+            .with_context(|| format!("{}: edge {k}", args.input.display()))?;
+    }
+    let options = SolverOptions {
+        method: Method::GaussNewton,
+        ..SolverOptions::default()
+    };
+
+    // 1. The full optimum: the reference for ARPS.
+    let mut ws = HostWorkspace::new(n, edge_capacity, (16 * n).max(2 * edge_capacity) + 1024);
+    let t0 = Instant::now();
+    ws.solve(&mut g, &options)
+        .map_err(|f| anyhow::anyhow!("optimizing the full graph: {f}"))?;
+    let full_optimize_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let original: Vec<Se2> = g.nodes().iter().map(|p| p.pose).collect();
+
+    // 2. Prune.
+    let params = PruneParams {
+        cells: CellParams {
+            cell_size: args.cell,
+            s: args.s,
+        },
+        weighting: match args.weight {
+            WeightArg::Eq3 => Weighting::NodeInformation,
+            WeightArg::Eq4 => Weighting::EdgeInformation,
+        },
+        ..PruneParams::default()
+    };
+    let mut node_information = vec![0.0; n];
+    let mut candidates = vec![
+        CellCandidate {
+            x: 0.0,
+            y: 0.0,
+            information: 0.0,
+            protected: false
+        };
+        n
+    ];
+    let mut order = vec![0u32; n];
+    let mut keep = vec![false; n];
+    let mut head = vec![0u32; n];
+    let mut edge_alive = vec![false; edge_capacity];
+    let mut next = vec![0u32; 2 * edge_capacity];
+    let t1 = Instant::now();
+    if args.weight == WeightArg::Eq3 {
+        cloi_core::solver::marginal_information_traces(
+            &mut g,
+            &mut ws.buffers(),
+            &mut node_information,
+        )
+        .map_err(|e| anyhow::anyhow!("node marginals for eq. (3): {e}"))?;
+    }
+    let report: PruneReport = prune::prune(
+        &mut g,
+        &params,
+        &mut PruneScratch {
+            node_information: &mut node_information,
+            candidates: &mut candidates,
+            order: &mut order,
+            keep: &mut keep,
+            head: &mut head,
+            edge_alive: &mut edge_alive,
+            next: &mut next,
+        },
+    )?;
+    let prune_ms = t1.elapsed().as_secs_f64() * 1e3;
+    // `order` now maps old node indices to new ones.
+    let kept_original: Vec<Se2> = (0..n)
+        .filter(|&i| order[i] != u32::MAX)
+        .map(|i| original[i])
+        .collect();
+
+    // 3. Optimize the pruned graph.
+    let t2 = Instant::now();
+    ws.solve(&mut g, &options)
+        .map_err(|f| anyhow::anyhow!("optimizing the pruned graph: {f}"))?;
+    let optimize_ms = t2.elapsed().as_secs_f64() * 1e3;
+    let pruned: Vec<Se2> = g.nodes().iter().map(|p| p.pose).collect();
+    let pruned_edges: Vec<PoseEdge> = g.edges().to_vec();
+
+    // 4. Density of the result.
+    let mut per_cell = std::collections::BTreeMap::<CellKey, usize>::new();
+    for p in &pruned {
+        *per_cell
+            .entry(CellKey::of(p.x, p.y, args.cell))
+            .or_default() += 1;
+    }
+    let mut degree = vec![0usize; pruned.len()];
+    for e in &pruned_edges {
+        degree[e.from.0 as usize] += 1;
+        if e.to != e.from {
+            degree[e.to.0 as usize] += 1;
+        }
+    }
+    let (arps_percent, arps_nodes_at_origin) = arps(&kept_original, &pruned).unwrap_or((0.0, 0));
+    let json = PruneJson {
+        file: args.input.display().to_string(),
+        cell_m: args.cell,
+        weight: args.weight,
+        s: args.s,
+        nodes_before: report.nodes_before,
+        edges_before: report.edges_before,
+        nodes_after: report.nodes_after,
+        edges_after: report.edges_after,
+        nodes_per_cell_mean: pruned.len() as f64 / per_cell.len().max(1) as f64,
+        nodes_per_cell_max: per_cell.values().copied().max().unwrap_or(0),
+        edges_per_node_mean: report.edges_after as f64 / report.nodes_after.max(1) as f64,
+        edges_per_node_max: degree.iter().copied().max().unwrap_or(0),
+        arps_percent,
+        arps_nodes_at_origin,
+        prune_ms,
+        optimize_ms,
+        full_optimize_ms,
+        eliminated: report.eliminated,
+        kept_not_eliminable: report.kept_not_eliminable,
+        tree_edges_added: report.tree_edges_added,
+        tree_edges_merged: report.tree_edges_merged,
+        outliers_dropped: report.outliers_dropped,
+    };
+    Ok((json, pruned, pruned_edges))
+}
+
+/// The pruned graph as a [`GraphFile`] for the g2o writer (nodes renumbered densely).
+fn pruned_file(_json: &PruneJson, poses: &[Se2], edges: &[PoseEdge]) -> GraphFile {
+    GraphFile {
+        ids: (0..poses.len() as i64).collect(),
+        poses: poses.to_vec(),
+        fixed: vec![false; poses.len()],
+        has_vertices: true,
+        edges: edges
+            .iter()
+            .map(|e| FileEdge {
+                from: e.from.0 as usize,
+                to: e.to.0 as usize,
+                measurement: e.measurement,
+                information: e.information,
+            })
+            .collect(),
+        duplicate_pairs: 0,
+    }
+}
+
+/// `cloi prune`.
+///
+/// # Errors
+/// See [`prune_file`]; output files that cannot be written.
+pub fn run(args: &PruneArgs, out: &mut dyn Write) -> Result<()> {
+    let (json, poses, edges) = prune_file(args)?;
+    let text = serde_json::to_string_pretty(&json)?;
+    if let Some(path) = &args.out {
+        graph_io::write_atomically(
+            path,
+            &graph_io::write_g2o(&pruned_file(&json, &poses, &edges), &poses),
+        )?;
+    }
+    if let Some(path) = &args.report {
+        graph_io::write_atomically(path, &text)?;
+    }
+    writeln!(out, "{text}")?;
+    Ok(())
+}
