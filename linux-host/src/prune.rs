@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use cloi_core::backend::cells::{CellCandidate, CellKey, CellParams};
+use cloi_core::backend::cells::{CellCandidate, CellKey, CellMoments, CellParams};
 use cloi_core::backend::prune::{self, PruneParams, PruneReport, PruneScratch, Weighting};
 use cloi_core::geom::Se2;
 use cloi_core::graph::{PoseEdge, PoseGraph, PoseNode};
@@ -47,6 +47,13 @@ pub struct PruneArgs {
     /// Initial guess from the file's vertices (default) or chained odometry.
     #[arg(long)]
     pub odometry_init: bool,
+    /// Run prune + optimize this many times on the same optimized graph (fresh solver memory
+    /// each time) and report the median times.
+    #[arg(long, default_value_t = 1)]
+    pub repeat: usize,
+    /// Most nodes to eliminate (a work budget; default: all the cell rule selects).
+    #[arg(long)]
+    pub max_eliminations: Option<usize>,
     /// Write the pruned, optimized graph here (g2o).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -74,7 +81,8 @@ pub struct PruneJson {
     pub nodes_after: usize,
     /// Edges after pruning.
     pub edges_after: usize,
-    /// Mean kept nodes per occupied cell (cells of the pruned, optimized graph).
+    /// Mean kept nodes per occupied cell, over the positions the cells were drawn on (the full
+    /// graph's optimum).
     pub nodes_per_cell_mean: f64,
     /// Most kept nodes in one cell.
     pub nodes_per_cell_max: usize,
@@ -84,11 +92,14 @@ pub struct PruneJson {
     pub edges_per_node_max: usize,
     /// Average relative position shift of the kept nodes, percent (see `arps`).
     pub arps_percent: f64,
+    /// Largest position shift of a kept node between the full and the pruned solution, metres.
+    pub max_shift_m: f64,
     /// Kept nodes left out of ARPS because they sit at the origin of the full solution.
     pub arps_nodes_at_origin: usize,
-    /// Time to prune (weights, cells, eliminations, compaction), milliseconds.
+    /// Time to prune (weights, cells, eliminations, compaction; for eq. 3 also the node
+    /// marginals), milliseconds, median over `--repeat` runs.
     pub prune_ms: f64,
-    /// Time to optimize the pruned graph, milliseconds.
+    /// Time to optimize the pruned graph (ordering included), milliseconds, median.
     pub optimize_ms: f64,
     /// Time to optimize the full graph first (not part of the paper's figure), milliseconds.
     pub full_optimize_ms: f64,
@@ -102,6 +113,8 @@ pub struct PruneJson {
     pub tree_edges_merged: usize,
     /// Outlier loop closures dropped during elimination.
     pub outliers_dropped: usize,
+    /// Largest offset between a tree edge and the current relative pose, metres.
+    pub max_tree_offset_m: f64,
 }
 
 /// ARPS, the average relative pose shift: the mean over kept nodes of
@@ -123,6 +136,12 @@ pub fn arps(original: &[Se2], pruned: &[Se2]) -> Option<(f64, usize)> {
         used += 1;
     }
     (used > 0).then(|| (100.0 * sum / used as f64, at_origin))
+}
+
+/// Median of a non-empty list of times.
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(v.len() / 2).copied().unwrap_or(0.0)
 }
 
 /// Runs the experiment; returns the report and the pruned graph's poses and edges.
@@ -183,6 +202,7 @@ pub fn prune_file(args: &PruneArgs) -> Result<(PruneJson, Vec<Se2>, Vec<PoseEdge
             WeightArg::Eq3 => Weighting::NodeInformation,
             WeightArg::Eq4 => Weighting::EdgeInformation,
         },
+        max_eliminations: args.max_eliminations.unwrap_or(usize::MAX),
         ..PruneParams::default()
     };
     let mut node_information = vec![0.0; n];
@@ -197,43 +217,70 @@ pub fn prune_file(args: &PruneArgs) -> Result<(PruneJson, Vec<Se2>, Vec<PoseEdge
     ];
     let mut order = vec![0u32; n];
     let mut keep = vec![false; n];
+    let mut keys = vec![CellKey::default(); n];
+    let mut geometric = vec![0.0; n];
+    let mut cells = vec![CellMoments::EMPTY; n];
     let mut head = vec![0u32; n];
     let mut edge_alive = vec![false; edge_capacity];
     let mut next = vec![0u32; 2 * edge_capacity];
-    let t1 = Instant::now();
-    if args.weight == WeightArg::Eq3 {
-        cloi_core::solver::marginal_information_traces(
+    let full_nodes: Vec<PoseNode> = g.nodes().to_vec();
+    let full_edges: Vec<PoseEdge> = g.edges().to_vec();
+    let mut prune_times = Vec::new();
+    let mut optimize_times = Vec::new();
+    let mut report = PruneReport::default();
+    for round in 0..args.repeat.max(1) {
+        if round > 0 {
+            // Start again from the full optimum, with fresh solver memory.
+            g.clear();
+            for node in &full_nodes {
+                g.add_node_full(*node)?;
+            }
+            for e in &full_edges {
+                g.add_edge(*e)?;
+            }
+            ws = HostWorkspace::new(n, edge_capacity, (16 * n).max(2 * edge_capacity) + 1024);
+        }
+        let t1 = Instant::now();
+        if args.weight == WeightArg::Eq3 {
+            cloi_core::solver::marginal_information_traces(
+                &mut g,
+                &mut ws.buffers(),
+                &mut node_information,
+            )
+            .map_err(|e| anyhow::anyhow!("node marginals for eq. (3): {e}"))?;
+        }
+        report = prune::prune(
             &mut g,
-            &mut ws.buffers(),
-            &mut node_information,
-        )
-        .map_err(|e| anyhow::anyhow!("node marginals for eq. (3): {e}"))?;
+            &params,
+            &mut PruneScratch {
+                node_information: &mut node_information,
+                candidates: &mut candidates,
+                order: &mut order,
+                keys: &mut keys,
+                geometric: &mut geometric,
+                cells: &mut cells,
+                keep: &mut keep,
+                head: &mut head,
+                edge_alive: &mut edge_alive,
+                next: &mut next,
+            },
+        )?;
+        prune_times.push(t1.elapsed().as_secs_f64() * 1e3);
+
+        // 3. Optimize the pruned graph.
+        let t2 = Instant::now();
+        if let Err(f) = ws.solve(&mut g, &options) {
+            bail!("optimizing the pruned graph: {f} (pruning: {report:?})");
+        }
+        optimize_times.push(t2.elapsed().as_secs_f64() * 1e3);
     }
-    let report: PruneReport = prune::prune(
-        &mut g,
-        &params,
-        &mut PruneScratch {
-            node_information: &mut node_information,
-            candidates: &mut candidates,
-            order: &mut order,
-            keep: &mut keep,
-            head: &mut head,
-            edge_alive: &mut edge_alive,
-            next: &mut next,
-        },
-    )?;
-    let prune_ms = t1.elapsed().as_secs_f64() * 1e3;
+    let prune_ms = median(&mut prune_times);
+    let optimize_ms = median(&mut optimize_times);
     // `order` now maps old node indices to new ones.
     let kept_original: Vec<Se2> = (0..n)
         .filter(|&i| order[i] != u32::MAX)
         .map(|i| original[i])
         .collect();
-
-    // 3. Optimize the pruned graph.
-    let t2 = Instant::now();
-    ws.solve(&mut g, &options)
-        .map_err(|f| anyhow::anyhow!("optimizing the pruned graph: {f}"))?;
-    let optimize_ms = t2.elapsed().as_secs_f64() * 1e3;
     let pruned: Vec<Se2> = g.nodes().iter().map(|p| p.pose).collect();
     let pruned_edges: Vec<PoseEdge> = g.edges().to_vec();
 
@@ -267,6 +314,11 @@ pub fn prune_file(args: &PruneArgs) -> Result<(PruneJson, Vec<Se2>, Vec<PoseEdge
         edges_per_node_max: degree.iter().copied().max().unwrap_or(0),
         arps_percent,
         arps_nodes_at_origin,
+        max_shift_m: kept_original
+            .iter()
+            .zip(&pruned)
+            .map(|(a, b)| (a.x - b.x).hypot(a.y - b.y))
+            .fold(0.0, f64::max),
         prune_ms,
         optimize_ms,
         full_optimize_ms,
@@ -275,6 +327,7 @@ pub fn prune_file(args: &PruneArgs) -> Result<(PruneJson, Vec<Se2>, Vec<PoseEdge
         tree_edges_added: report.tree_edges_added,
         tree_edges_merged: report.tree_edges_merged,
         outliers_dropped: report.outliers_dropped,
+        max_tree_offset_m: report.max_tree_offset_m,
     };
     Ok((json, pruned, pruned_edges))
 }

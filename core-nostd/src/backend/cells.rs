@@ -18,7 +18,7 @@
 //! information, which needs the marginal covariance of the whole graph and is much slower. The
 //! caller computes `I` and passes it in.
 //!
-//! Storage: the caller lends an index scratch of one `u32` per node; nothing else is used.
+//! Storage: the caller lends a [`CellScratch`] of a few words per node; nothing else is used.
 
 /// One candidate node.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -34,7 +34,7 @@ pub struct CellCandidate {
 }
 
 /// Key of a grid cell.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord)]
 pub struct CellKey {
     /// Column.
     pub ix: i32,
@@ -108,23 +108,75 @@ impl core::fmt::Display for CellError {
 
 impl core::error::Error for CellError {}
 
-fn key(c: &CellCandidate, size: f64) -> CellKey {
-    CellKey::of(c.x, c.y, size)
+/// Per-cell sums over the nodes of one cell, for the geometric term in O(1) per cell:
+/// `sum_j |p_j - p|^2 = s2 - 2 p . (sx, sy) + k |p|^2`.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CellMoments {
+    /// The cell.
+    pub key: CellKey,
+    /// Nodes in it.
+    pub count: u32,
+    /// Sum of x.
+    pub sx: f64,
+    /// Sum of y.
+    pub sy: f64,
+    /// Sum of x^2 + y^2.
+    pub s2: f64,
+    /// Index in the sorted order where the cell starts.
+    pub start: u32,
+}
+
+impl CellMoments {
+    /// An empty cell at the origin (storage initialiser).
+    pub const EMPTY: CellMoments = CellMoments {
+        key: CellKey { ix: 0, iy: 0 },
+        count: 0,
+        sx: 0.0,
+        sy: 0.0,
+        s2: 0.0,
+        start: 0,
+    };
+
+    fn squared_distances_to(&self, x: f64, y: f64) -> f64 {
+        let k = f64::from(self.count);
+        (self.s2 - 2.0 * (x * self.sx + y * self.sy) + k * (x * x + y * y)).max(0.0)
+    }
+}
+
+/// Borrowed scratch of [`select`]: every slice at least as long as the candidates.
+#[derive(Debug)]
+pub struct CellScratch<'a> {
+    /// Node indices sorted by cell.
+    pub order: &'a mut [u32],
+    /// The cell of each node.
+    pub keys: &'a mut [CellKey],
+    /// Geometric term of each node.
+    pub geometric: &'a mut [f64],
+    /// Moments of each occupied cell, sorted by key.
+    pub cells: &'a mut [CellMoments],
 }
 
 /// Decides which candidates survive: `keep[i]` is set for the winner of every cell and for
 /// every protected node; everything else is to be eliminated.
+///
+/// Cost: one sort of the nodes by cell, then O(1) per node and neighbour cell (plus a binary
+/// search to find each neighbour cell).
 ///
 /// # Errors
 /// See [`CellError`].
 pub fn select(
     candidates: &[CellCandidate],
     params: &CellParams,
-    scratch: &mut [u32],
+    s: &mut CellScratch<'_>,
     keep: &mut [bool],
 ) -> Result<CellStats, CellError> {
     let n = candidates.len();
-    if scratch.len() < n || keep.len() < n {
+    if s.order.len() < n
+        || s.keys.len() < n
+        || s.geometric.len() < n
+        || s.cells.len() < n
+        || keep.len() < n
+    {
         return Err(CellError::ScratchTooSmall);
     }
     if !(params.cell_size > 0.0 && params.cell_size.is_finite() && (0.0..=1.0).contains(&params.s))
@@ -132,24 +184,47 @@ pub fn select(
         return Err(CellError::BadParams);
     }
     let size = params.cell_size;
-    let order = &mut scratch[..n];
+    for (c, k) in candidates.iter().zip(s.keys.iter_mut()) {
+        *k = CellKey::of(c.x, c.y, size);
+    }
+    let keys = &*s.keys;
+    let order = &mut s.order[..n];
     for (i, o) in order.iter_mut().enumerate() {
         *o = i as u32;
     }
-    // Sort node indices by cell (then index, for determinism).
-    order.sort_unstable_by_key(|&i| (candidates.get(i as usize).map(|c| key(c, size)), i));
-    let cand = |i: u32| candidates.get(i as usize);
-    let cell_of = |i: u32| cand(i).map(|c| key(c, size));
+    order.sort_unstable_by_key(|&i| (keys.get(i as usize).copied(), i));
 
-    // The range of `order` that holds cell `k`.
-    let range_of = |order: &[u32], k: CellKey| {
-        let lo = order.partition_point(|&i| cell_of(i).is_some_and(|c| c < k));
-        let hi = order.partition_point(|&i| cell_of(i).is_some_and(|c| c <= k));
-        lo..hi
-    };
-    let geometric = |order: &[u32], i: u32| -> f64 {
-        let Some(c) = cand(i) else { return 0.0 };
-        let k = key(c, size);
+    // Moments of every occupied cell, in key order.
+    let mut ncells = 0usize;
+    for (pos, &i) in order.iter().enumerate() {
+        let (Some(c), Some(&k)) = (candidates.get(i as usize), keys.get(i as usize)) else {
+            continue;
+        };
+        let new_cell = ncells == 0 || s.cells.get(ncells - 1).is_none_or(|m| m.key != k);
+        if new_cell {
+            if let Some(m) = s.cells.get_mut(ncells) {
+                *m = CellMoments {
+                    key: k,
+                    start: pos as u32,
+                    ..CellMoments::EMPTY
+                };
+            }
+            ncells += 1;
+        }
+        if let Some(m) = s.cells.get_mut(ncells - 1) {
+            m.count += 1;
+            m.sx += c.x;
+            m.sy += c.y;
+            m.s2 += c.x * c.x + c.y * c.y;
+        }
+    }
+    let cells = &s.cells[..ncells];
+
+    // Geometric terms and the normalisers.
+    let mut i_max: f64 = 0.0;
+    let mut g_max: f64 = 0.0;
+    for (i, c) in candidates.iter().enumerate() {
+        let Some(&k) = keys.get(i) else { continue };
         let mut g = 0.0;
         for dx in -1..=1 {
             for dy in -1..=1 {
@@ -160,26 +235,20 @@ pub fn select(
                     ix: k.ix.saturating_add(dx),
                     iy: k.iy.saturating_add(dy),
                 };
-                for &j in order.get(range_of(order, nk)).unwrap_or(&[]) {
-                    if let Some(o) = cand(j) {
-                        g += (o.x - c.x) * (o.x - c.x) + (o.y - c.y) * (o.y - c.y);
+                if let Ok(p) = cells.binary_search_by_key(&nk, |m| m.key) {
+                    if let Some(m) = cells.get(p) {
+                        g += m.squared_distances_to(c.x, c.y);
                     }
                 }
             }
         }
-        g
-    };
-
-    // Normalisers: the largest information and geometric terms.
-    let mut i_max: f64 = 0.0;
-    let mut g_max: f64 = 0.0;
-    for &i in order.iter() {
-        if let Some(c) = cand(i) {
-            if c.information.is_finite() {
-                i_max = i_max.max(c.information);
-            }
+        if let Some(slot) = s.geometric.get_mut(i) {
+            *slot = g;
         }
-        g_max = g_max.max(geometric(order, i));
+        g_max = g_max.max(g);
+        if c.information.is_finite() {
+            i_max = i_max.max(c.information);
+        }
     }
     let norm = |v: f64, max: f64| {
         if max > 0.0 && v.is_finite() {
@@ -193,17 +262,14 @@ pub fn select(
         *k = false;
     }
     let mut stats = CellStats::default();
-    let mut start = 0;
-    while start < n {
-        let k0 = order.get(start).and_then(|&i| cell_of(i));
-        let mut end = start;
-        while end < n && order.get(end).and_then(|&i| cell_of(i)) == k0 {
-            end += 1;
-        }
+    for m in cells {
+        let (start, end) = (m.start as usize, m.start as usize + m.count as usize);
         let mut best: Option<(f64, u32)> = None;
         let mut kept_here = 0;
         for &i in order.get(start..end).unwrap_or(&[]) {
-            let Some(c) = cand(i) else { continue };
+            let Some(c) = candidates.get(i as usize) else {
+                continue;
+            };
             if c.protected {
                 if let Some(k) = keep.get_mut(i as usize) {
                     *k = true;
@@ -211,8 +277,8 @@ pub fn select(
                 kept_here += 1;
                 continue;
             }
-            let w = params.s * norm(c.information, i_max)
-                + (1.0 - params.s) * norm(geometric(order, i), g_max);
+            let g = s.geometric.get(i as usize).copied().unwrap_or(0.0);
+            let w = params.s * norm(c.information, i_max) + (1.0 - params.s) * norm(g, g_max);
             if best.is_none_or(|(bw, _)| w > bw) {
                 best = Some((w, i));
             }
@@ -229,9 +295,45 @@ pub fn select(
         stats.cells += 1;
         stats.kept += kept_here;
         stats.max_kept_per_cell = stats.max_kept_per_cell.max(kept_here);
-        start = end;
     }
     Ok(stats)
+}
+
+/// Owned storage for a [`CellScratch`] of `N` nodes.
+#[derive(Debug)]
+pub struct CellStorage<const N: usize> {
+    order: [u32; N],
+    keys: [CellKey; N],
+    geometric: [f64; N],
+    cells: [CellMoments; N],
+}
+
+impl<const N: usize> CellStorage<N> {
+    /// Zeroed storage, usable as a `static` initialiser.
+    pub const fn new() -> Self {
+        CellStorage {
+            order: [0; N],
+            keys: [CellKey { ix: 0, iy: 0 }; N],
+            geometric: [0.0; N],
+            cells: [CellMoments::EMPTY; N],
+        }
+    }
+
+    /// The scratch view.
+    pub fn scratch(&mut self) -> CellScratch<'_> {
+        CellScratch {
+            order: &mut self.order,
+            keys: &mut self.keys,
+            geometric: &mut self.geometric,
+            cells: &mut self.cells,
+        }
+    }
+}
+
+impl<const N: usize> Default for CellStorage<N> {
+    fn default() -> Self {
+        Self::new()
+    }
 }
 
 #[cfg(test)]
@@ -247,6 +349,16 @@ mod tests {
         }
     }
 
+    fn run<const N: usize>(
+        nodes: &[CellCandidate; N],
+        params: &CellParams,
+    ) -> ([bool; N], CellStats) {
+        let mut st = CellStorage::<N>::new();
+        let mut keep = [false; N];
+        let stats = select(nodes, params, &mut st.scratch(), &mut keep).unwrap();
+        (keep, stats)
+    }
+
     #[test]
     fn one_survivor_per_cell_with_the_most_information() {
         let nodes = [
@@ -255,13 +367,13 @@ mod tests {
             c(0.9, 0.2, 3.0),
             c(5.5, 5.5, 1.0),
         ];
-        let mut scratch = [0u32; 4];
-        let mut keep = [false; 4];
-        let params = CellParams {
-            cell_size: 1.0,
-            s: 1.0,
-        };
-        let stats = select(&nodes, &params, &mut scratch, &mut keep).unwrap();
+        let (keep, stats) = run(
+            &nodes,
+            &CellParams {
+                cell_size: 1.0,
+                s: 1.0,
+            },
+        );
         assert_eq!(keep, [false, true, false, true]);
         assert_eq!(
             stats,
@@ -278,18 +390,13 @@ mod tests {
         // Cell (0,0) holds two nodes of equal information; the neighbour cell (1,0) holds one
         // node at x = 1.1. With s = 0 the node farther from it (x = 0.1) wins.
         let nodes = [c(0.1, 0.5, 1.0), c(0.9, 0.5, 1.0), c(1.1, 0.5, 1.0)];
-        let mut scratch = [0u32; 3];
-        let mut keep = [false; 3];
-        select(
+        let (keep, _) = run(
             &nodes,
             &CellParams {
                 cell_size: 1.0,
                 s: 0.0,
             },
-            &mut scratch,
-            &mut keep,
-        )
-        .unwrap();
+        );
         assert_eq!(keep, [true, false, true]);
     }
 
@@ -297,20 +404,53 @@ mod tests {
     fn protected_nodes_always_survive_and_represent_their_cell() {
         let mut nodes = [c(0.1, 0.1, 1.0), c(0.2, 0.2, 100.0)];
         nodes[0].protected = true;
-        let mut scratch = [0u32; 2];
-        let mut keep = [false; 2];
-        select(&nodes, &CellParams::default(), &mut scratch, &mut keep).unwrap();
+        let (keep, _) = run(&nodes, &CellParams::default());
         assert_eq!(keep, [true, false]);
+    }
+
+    #[test]
+    fn moments_give_the_brute_force_geometric_term() {
+        let nodes = [
+            c(0.1, 0.2, 1.0),
+            c(1.3, 0.4, 1.0),
+            c(1.7, 0.9, 1.0),
+            c(-0.4, 1.2, 1.0),
+            c(0.5, 0.5, 1.0),
+        ];
+        let mut st = CellStorage::<5>::new();
+        let mut keep = [false; 5];
+        select(&nodes, &CellParams::default(), &mut st.scratch(), &mut keep).unwrap();
+        for (i, a) in nodes.iter().enumerate() {
+            let ka = CellKey::of(a.x, a.y, 1.0);
+            let mut g = 0.0;
+            for b in &nodes {
+                let kb = CellKey::of(b.x, b.y, 1.0);
+                if kb != ka && (kb.ix - ka.ix).abs() <= 1 && (kb.iy - ka.iy).abs() <= 1 {
+                    g += (a.x - b.x).powi(2) + (a.y - b.y).powi(2);
+                }
+            }
+            assert!(
+                (st.geometric[i] - g).abs() < 1e-12,
+                "node {i}: {} vs {g}",
+                st.geometric[i]
+            );
+        }
     }
 
     #[test]
     fn bad_input_is_rejected_not_a_panic() {
         let nodes = [c(f64::NAN, 0.0, f64::NAN), c(1e300, -1e300, 1.0)];
-        let mut scratch = [0u32; 2];
+        let mut st = CellStorage::<2>::new();
         let mut keep = [false; 2];
-        assert!(select(&nodes, &CellParams::default(), &mut scratch, &mut keep).is_ok());
+        assert!(select(&nodes, &CellParams::default(), &mut st.scratch(), &mut keep).is_ok());
+        let mut small = CellStorage::<1>::new();
         assert_eq!(
-            select(&nodes, &CellParams::default(), &mut scratch[..1], &mut keep),
+            select(
+                &nodes,
+                &CellParams::default(),
+                &mut small.scratch(),
+                &mut keep
+            ),
             Err(CellError::ScratchTooSmall)
         );
         let bad = CellParams {
@@ -318,7 +458,7 @@ mod tests {
             s: 0.5,
         };
         assert_eq!(
-            select(&nodes, &bad, &mut scratch, &mut keep),
+            select(&nodes, &bad, &mut st.scratch(), &mut keep),
             Err(CellError::BadParams)
         );
     }

@@ -106,96 +106,143 @@ fn factor_jacobians(
     Ok((rz_t * ja, rz_t * jb))
 }
 
-/// The exact marginal information over the blanket (`poses[1..]`) after eliminating
-/// `poses[0]`, from the factors that touch it (and any among the blanket that should be folded
-/// in). The result has dimension `3 k` in blanket order.
+/// The exact Gaussian marginal over the Markov blanket of an eliminated node, in factored form.
+///
+/// Every factor of the eliminated node `m` touches `m`, so the joint information over
+/// `(m, b_0 .. b_{k-1})` has a block-diagonal blanket part: `H_BB = diag(A_i)`, `H_mB =
+/// [C_0 .. C_{k-1}]`. The marginal information is `Lambda_ij = delta_ij A_i - C_i^T H_mm^-1
+/// C_j`. Holding `b_0` fixed (the marginal is invariant to moving the whole blanket), the
+/// Woodbury identity gives the blanket's covariance with nothing larger than 3x3:
+///
+/// `Sigma_ij = delta_ij A_i^-1 + W_i S^-1 W_j^T`, `W_i = A_i^-1 C_i^T`,
+/// `S = H_mm - sum_{i >= 1} C_i A_i^-1 C_i^T`.
+#[derive(Clone, Debug)]
+pub struct Marginal {
+    k: usize,
+    a: [Matrix3<f64>; MAX_BLANKET],
+    c: [Matrix3<f64>; MAX_BLANKET],
+    hmm_inv: Matrix3<f64>,
+    a_inv: [Matrix3<f64>; MAX_BLANKET],
+    w: [Matrix3<f64>; MAX_BLANKET],
+    s_inv: Matrix3<f64>,
+}
+
+impl Marginal {
+    /// Blanket size.
+    pub fn blanket_len(&self) -> usize {
+        self.k
+    }
+
+    /// Block `(i, j)` of the marginal information `Lambda`.
+    pub fn information_block(&self, i: usize, j: usize) -> Matrix3<f64> {
+        let (Some(ai), Some(ci), Some(cj)) = (self.a.get(i), self.c.get(i), self.c.get(j)) else {
+            return Matrix3::zeros();
+        };
+        let diag = if i == j { *ai } else { Matrix3::zeros() };
+        diag - ci.transpose() * self.hmm_inv * cj
+    }
+
+    /// The whole marginal information as a dense `3 k` matrix (for checks and small tools).
+    pub fn information(&self) -> Option<DenseMatrix> {
+        let mut out = DenseMatrix::zeros(3 * self.k)?;
+        for i in 0..self.k {
+            for j in 0..self.k {
+                out.add_block3(i, j, &self.information_block(i, j));
+            }
+        }
+        Some(out)
+    }
+
+    /// Block `(i, j)` of the blanket covariance with blanket node 0 held fixed.
+    pub fn anchored_covariance(&self, i: usize, j: usize) -> Matrix3<f64> {
+        if i == 0 || j == 0 || i >= self.k || j >= self.k {
+            return Matrix3::zeros();
+        }
+        let (Some(wi), Some(wj)) = (self.w.get(i), self.w.get(j)) else {
+            return Matrix3::zeros();
+        };
+        let shared = wi * self.s_inv * wj.transpose();
+        if i == j {
+            self.a_inv.get(i).map_or(shared, |a| a + shared)
+        } else {
+            shared
+        }
+    }
+}
+
+/// The exact marginal over the blanket (`poses[1..]`) after eliminating `poses[0]`, from the
+/// factors that touch it (each factor must join `poses[0]` to a blanket pose).
 ///
 /// # Errors
 /// See [`MarginalizeError`].
-pub fn marginalize(
-    poses: &[Se2],
-    factors: &[LocalFactor],
-) -> Result<DenseMatrix, MarginalizeError> {
+pub fn marginalize(poses: &[Se2], factors: &[LocalFactor]) -> Result<Marginal, MarginalizeError> {
     let k = poses.len().saturating_sub(1);
     if k > MAX_BLANKET {
         return Err(MarginalizeError::BlanketTooLarge);
     }
-    let mut h = DenseMatrix::zeros(3 * (k + 1)).ok_or(MarginalizeError::BlanketTooLarge)?;
+    let z = Matrix3::zeros();
+    let mut hmm = z;
+    let mut out = Marginal {
+        k,
+        a: [z; MAX_BLANKET],
+        c: [z; MAX_BLANKET],
+        hmm_inv: z,
+        a_inv: [z; MAX_BLANKET],
+        w: [z; MAX_BLANKET],
+        s_inv: z,
+    };
     for f in factors {
         let (ja, jb) = factor_jacobians(poses, f)?;
-        let (a, b) = (usize::from(f.from), usize::from(f.to));
-        let oa = f.information * ja;
-        let ob = f.information * jb;
-        h.add_block3(a, a, &(ja.transpose() * oa));
-        h.add_block3(b, b, &(jb.transpose() * ob));
-        let ab = ja.transpose() * ob;
-        h.add_block3(a, b, &ab);
-        h.add_block3(b, a, &ab.transpose());
+        // Orient the factor as (m, blanket node).
+        let (jm, jo, other) = match (f.from, f.to) {
+            (0, o) if o > 0 => (ja, jb, usize::from(o)),
+            (o, 0) if o > 0 => (jb, ja, usize::from(o)),
+            _ => return Err(MarginalizeError::BadIndex),
+        };
+        let i = other - 1;
+        let oo = f.information * jo;
+        hmm += jm.transpose() * f.information * jm;
+        let (Some(a), Some(c)) = (out.a.get_mut(i), out.c.get_mut(i)) else {
+            return Err(MarginalizeError::BadIndex);
+        };
+        *a += jo.transpose() * oo;
+        *c += jm.transpose() * oo;
     }
-    let hmm_inv = spd_inverse(&h.block3(0, 0)).ok_or(MarginalizeError::SingularNode)?;
-    let mut out = DenseMatrix::zeros(3 * k).ok_or(MarginalizeError::BlanketTooLarge)?;
-    for i in 0..k {
-        let him = h.block3(i + 1, 0);
-        let left = him * hmm_inv;
-        for j in 0..k {
-            let block = h.block3(i + 1, j + 1) - left * h.block3(0, j + 1);
-            out.add_block3(i, j, &block);
+    out.hmm_inv = spd_inverse(&hmm).ok_or(MarginalizeError::SingularNode)?;
+    let mut s = hmm;
+    for i in 1..k {
+        let (Some(a), Some(c)) = (out.a.get(i), out.c.get(i)) else {
+            break;
+        };
+        let a_inv = spd_inverse(a).ok_or(MarginalizeError::SingularMarginal)?;
+        let w = a_inv * c.transpose();
+        s -= c * w;
+        if let (Some(ai), Some(wi)) = (out.a_inv.get_mut(i), out.w.get_mut(i)) {
+            *ai = a_inv;
+            *wi = w;
         }
+    }
+    if k >= 2 {
+        out.s_inv = spd_inverse(&symmetrize(&s)).ok_or(MarginalizeError::SingularMarginal)?;
     }
     Ok(out)
 }
 
-/// Covariance of the blanket with blanket node 0 held fixed: a `3 (k - 1)` matrix over nodes
-/// `1..k`. A singular marginal (a direction nothing constrains) is regularized once with a tiny
-/// multiple of its largest diagonal entry.
-fn anchored_covariance(marginal: &DenseMatrix) -> Result<DenseMatrix, MarginalizeError> {
-    let n = marginal.dim().saturating_sub(3);
-    let mut reduced = DenseMatrix::zeros(n).ok_or(MarginalizeError::BlanketTooLarge)?;
-    let mut max_diag: f64 = 0.0;
-    for r in 0..n {
-        for c in 0..n {
-            reduced.set(r, c, marginal.get(r + 3, c + 3));
-        }
-        max_diag = max_diag.max(marginal.get(r + 3, r + 3));
-    }
-    if let Some(cov) = reduced.spd_inverse() {
-        return Ok(cov);
-    }
-    let eps = if max_diag > 0.0 {
-        max_diag * 1e-9
-    } else {
-        1e-9
-    };
-    for r in 0..n {
-        reduced.add(r, r, eps);
-    }
-    reduced
-        .spd_inverse()
-        .ok_or(MarginalizeError::SingularMarginal)
-}
-
-/// Covariance block `(i, j)` of blanket nodes under the anchored covariance (node 0 fixed).
-fn cov_block(cov: &DenseMatrix, i: usize, j: usize) -> Matrix3<f64> {
-    if i == 0 || j == 0 {
-        Matrix3::zeros()
-    } else {
-        cov.block3(i - 1, j - 1)
-    }
-}
-
-/// Covariance of the relative pose `x_i^-1 (+) x_j` of two blanket nodes.
+/// Covariance of the relative pose `x_i^-1 (+) x_j` of two blanket nodes under the marginal;
+/// `trig[i]` holds `(cos, sin)` of `x_i`'s heading.
 fn relative_covariance(
     blanket: &[Se2],
-    cov: &DenseMatrix,
+    trig: &[(f64, f64)],
+    m: &Marginal,
     i: usize,
     j: usize,
 ) -> Option<Matrix3<f64>> {
-    let (xi, xj) = (blanket.get(i)?, blanket.get(j)?);
-    let (ja, jb) = xi.between_jacobians(xj);
-    let cross = ja * cov_block(cov, i, j) * jb.transpose();
+    let (xi, xj, &(c, s)) = (blanket.get(i)?, blanket.get(j)?, trig.get(i)?);
+    let (ja, jb) = xi.between_jacobians_trig(c, s, xj);
+    let cross = ja * m.anchored_covariance(i, j) * jb.transpose();
     Some(symmetrize(
-        &(ja * cov_block(cov, i, i) * ja.transpose()
-            + jb * cov_block(cov, j, j) * jb.transpose()
+        &(ja * m.anchored_covariance(i, i) * ja.transpose()
+            + jb * m.anchored_covariance(j, j) * jb.transpose()
             + cross
             + cross.transpose()),
     ))
@@ -218,35 +265,47 @@ fn edge_information(z: &Se2, cov: &Matrix3<f64>) -> Info3 {
     spd_inverse(&regularized).unwrap_or_else(|| Matrix3::identity() * MAX_EDGE_INFORMATION)
 }
 
-/// Sparsifies a dense marginal over `blanket` (from [`marginalize`]) into the edges of a
-/// Chow-Liu tree: at most `k - 1` relative-pose edges.
+/// Sparsifies the marginal over `blanket` (from [`marginalize`]) into the edges of a Chow-Liu
+/// tree: at most `k - 1` relative-pose edges, each measuring the current relative pose of its
+/// two nodes with the information of that relative pose under the marginal.
 ///
 /// # Errors
-/// The marginal cannot be inverted, or the blanket is too large.
+/// The blanket does not match the marginal.
 pub fn chow_liu_edges(
     blanket: &[Se2],
-    marginal: &DenseMatrix,
+    marginal: &Marginal,
 ) -> Result<Vec<TreeEdge, { MAX_TREE_NODES - 1 }>, MarginalizeError> {
     let k = blanket.len();
     let mut edges = Vec::new();
     if k < 2 {
         return Ok(edges);
     }
-    if k > MAX_BLANKET || marginal.dim() != 3 * k {
+    if k > MAX_BLANKET || marginal.blanket_len() != k {
         return Err(MarginalizeError::BlanketTooLarge);
     }
-    let cov = anchored_covariance(marginal)?;
-    let tree = maximum_spanning_tree(k, |i, j| {
-        relative_covariance(blanket, &cov, i, j).map(|c| information_heuristic(&c))
-    })
-    .ok_or(MarginalizeError::BlanketTooLarge)?;
+    // Relative covariances of every pair, computed once (k <= 9: at most 36 pairs).
+    let mut trig = [(1.0, 0.0); MAX_BLANKET];
+    for (t, x) in trig.iter_mut().zip(blanket) {
+        *t = (libm::cos(x.theta), libm::sin(x.theta));
+    }
+    let mut rel = [[Matrix3::zeros(); MAX_BLANKET]; MAX_BLANKET];
+    for i in 0..k {
+        for j in (i + 1)..k {
+            if let (Some(c), Some(row)) =
+                (relative_covariance(blanket, &trig, marginal, i, j), rel.get_mut(i))
+            {
+                if let Some(slot) = row.get_mut(j) {
+                    *slot = c;
+                }
+            }
+        }
+    }
+    let pair = |i: usize, j: usize| rel.get(i).and_then(|r| r.get(j)).copied();
+    let tree = maximum_spanning_tree(k, |i, j| pair(i, j).map(|c| information_heuristic(&c)))
+        .ok_or(MarginalizeError::BlanketTooLarge)?;
     for p in tree {
         let (i, j) = (usize::from(p.a), usize::from(p.b));
-        let (Some(xi), Some(xj), Some(c)) = (
-            blanket.get(i),
-            blanket.get(j),
-            relative_covariance(blanket, &cov, i, j),
-        ) else {
+        let (Some(xi), Some(xj), Some(c)) = (blanket.get(i), blanket.get(j), pair(i, j)) else {
             return Err(MarginalizeError::BadIndex);
         };
         let measurement = xi.between(xj);
@@ -381,7 +440,7 @@ mod tests {
         for r in 0..12 {
             for c in 0..12 {
                 let expected = reference.get(r, c) - if r == c && r < 3 { prior } else { 0.0 };
-                let got = marginal.get(r, c);
+                let got = marginal.information().unwrap().get(r, c);
                 assert!(
                     (got - expected).abs() < 1e-6 * (1.0 + expected.abs()),
                     "({r},{c}) {got} vs {expected}"

@@ -7,7 +7,7 @@
 //! gives now, max-mixture edges with their active component, and an edge whose null hypothesis
 //! is active is dropped as an outlier), replaces them by the tree edges, and merges a tree edge
 //! into an existing plain edge between the same two nodes (information added, measurement the
-//! current relative pose), which keeps the graph near the paper's three edges per node.
+//! information-weighted mean), which keeps the graph near the paper's three edges per node.
 //! Nodes that cannot be eliminated (a blanket beyond [`MAX_BLANKET`], a singular marginal) are
 //! kept and counted. Protected nodes (fixed, with a prior, the first node when it holds the
 //! gauge, or any the caller names) are never eliminated.
@@ -22,7 +22,7 @@
 use heapless::Vec;
 use nalgebra::Matrix3;
 
-use super::cells::{self, CellCandidate, CellParams, CellStats};
+use super::cells::{self, CellCandidate, CellKey, CellMoments, CellParams, CellScratch, CellStats};
 use super::marginalize::{chow_liu_edges, marginalize, LocalFactor, MAX_BLANKET};
 use crate::geom::{spd_inverse, symmetrize, Info3, Se2};
 use crate::graph::{EdgeKind, PoseEdge, PoseGraph, RobustKernel};
@@ -54,6 +54,9 @@ pub struct PruneParams {
     /// A max-mixture edge whose active component scales the information below this is treated
     /// as an outlier and dropped when an endpoint is eliminated.
     pub outlier_scale: f64,
+    /// Most nodes eliminated in this call (a work budget; the rest of the cell rule's choice is
+    /// kept for a later call). `usize::MAX` for no limit.
+    pub max_eliminations: usize,
 }
 
 impl Default for PruneParams {
@@ -63,6 +66,7 @@ impl Default for PruneParams {
             weighting: Weighting::EdgeInformation,
             protect_from: usize::MAX,
             outlier_scale: 0.5,
+            max_eliminations: usize::MAX,
         }
     }
 }
@@ -84,12 +88,18 @@ pub struct PruneReport {
     pub eliminated: usize,
     /// Nodes the cell rule would drop but that were kept (blanket too large or singular).
     pub kept_not_eliminable: usize,
+    /// Cells whose representative became a node that could not be eliminated (the winner was
+    /// eliminated in its place).
+    pub swapped_representatives: usize,
     /// Tree edges added as new edges.
     pub tree_edges_added: usize,
     /// Tree edges merged into an existing edge.
     pub tree_edges_merged: usize,
     /// Outlier (null-hypothesis) edges dropped.
     pub outliers_dropped: usize,
+    /// Largest difference between a tree edge's measurement and the current relative pose of
+    /// its nodes (translation norm, metres): how hard the eliminated edges were pulling.
+    pub max_tree_offset_m: f64,
     /// Statistics of the cell selection.
     pub cell_stats: CellStats,
 }
@@ -126,6 +136,12 @@ pub struct PruneScratch<'a> {
     pub candidates: &'a mut [CellCandidate],
     /// Per node: index scratch / renumbering.
     pub order: &'a mut [u32],
+    /// Per node: cell keys.
+    pub keys: &'a mut [CellKey],
+    /// Per node: geometric terms.
+    pub geometric: &'a mut [f64],
+    /// Per node: cell moments.
+    pub cells: &'a mut [CellMoments],
     /// Per node: survives.
     pub keep: &'a mut [bool],
     /// Per node: head of its incidence list.
@@ -142,6 +158,9 @@ pub struct PruneStorage<const N: usize, const E: usize> {
     node_information: [f64; N],
     candidates: [CellCandidate; N],
     order: [u32; N],
+    keys: [CellKey; N],
+    geometric: [f64; N],
+    cells: [CellMoments; N],
     keep: [bool; N],
     head: [u32; N],
     edge_alive: [bool; E],
@@ -160,6 +179,9 @@ impl<const N: usize, const E: usize> PruneStorage<N, E> {
                 protected: false,
             }; N],
             order: [0; N],
+            keys: [CellKey { ix: 0, iy: 0 }; N],
+            geometric: [0.0; N],
+            cells: [CellMoments::EMPTY; N],
             keep: [false; N],
             head: [0; N],
             edge_alive: [false; E],
@@ -173,6 +195,9 @@ impl<const N: usize, const E: usize> PruneStorage<N, E> {
             node_information: &mut self.node_information,
             candidates: &mut self.candidates,
             order: &mut self.order,
+            keys: &mut self.keys,
+            geometric: &mut self.geometric,
+            cells: &mut self.cells,
             keep: &mut self.keep,
             head: &mut self.head,
             edge_alive: &mut self.edge_alive,
@@ -345,6 +370,32 @@ fn pose_of(graph: &PoseGraph<'_>, id: NodeId) -> Se2 {
     graph.node(id).map(|n| n.pose).unwrap_or(Se2::IDENTITY)
 }
 
+/// Blanket-size limits of the elimination passes.
+const ELIMINATION_PASSES: [usize; 5] = [2, 3, 4, 6, MAX_BLANKET];
+
+/// Number of distinct neighbours of `node` over live edges; `None` beyond [`MAX_BLANKET`].
+fn blanket_size(node: usize, graph: &PoseGraph<'_>, s: &PruneScratch<'_>) -> Option<usize> {
+    let mut seen: Vec<NodeId, MAX_BLANKET> = Vec::new();
+    let mut slot = s.head.get(node).copied().unwrap_or(NONE);
+    while slot != NONE {
+        let k = (slot / 2) as usize;
+        if s.edge_alive.get(k).copied().unwrap_or(false) {
+            if let Some(e) = graph.edges().get(k) {
+                let other = if e.from.0 as usize == node {
+                    e.to
+                } else {
+                    e.from
+                };
+                if e.kind != EdgeKind::Prior && !seen.contains(&other) {
+                    seen.push(other).ok()?;
+                }
+            }
+        }
+        slot = s.next.get(slot as usize).copied().unwrap_or(NONE);
+    }
+    Some(seen.len())
+}
+
 /// Tries to eliminate `m`; returns `false` (graph unchanged) when it cannot.
 fn eliminate(
     m: usize,
@@ -423,6 +474,11 @@ fn eliminate(
         ) else {
             continue;
         };
+        let current = pose_of(graph, a).between(&pose_of(graph, b));
+        let off = libm::hypot(current.x - t.measurement.x, current.y - t.measurement.y);
+        if off > report.max_tree_offset_m {
+            report.max_tree_offset_m = off;
+        }
         if merge_into_existing(a, b, &t.measurement, &t.information, graph, s) {
             report.tree_edges_merged += 1;
         } else if push_edge(
@@ -457,21 +513,24 @@ fn merge_into_existing(
         {
             continue;
         }
-        let (xf, xt) = (pose_of(graph, e.from), pose_of(graph, e.to));
-        let current = xf.between(&xt);
-        let added = if e.from == a {
-            *information
+        // The tree edge in the existing edge's direction.
+        let (zt, ot) = if e.from == a {
+            (*measurement, *information)
         } else {
-            reversed_information(measurement, information)
+            (
+                measurement.inverse(),
+                reversed_information(measurement, information),
+            )
         };
-        // Re-express the existing edge at the current relative pose (its residual is dropped:
-        // the graph is at its optimum).
-        let combined = symmetrize(&(e.information + added));
-        if spd_inverse(&combined).is_none() {
+        // Information-weighted mean of the two measurements, in the tangent space at `zt`.
+        let combined = symmetrize(&(e.information + ot));
+        let Some(cov) = spd_inverse(&combined) else {
             return false;
-        }
+        };
+        let d_old = zt.inverse().compose(&e.measurement).to_vector();
+        let d = cov * (e.information * d_old);
         if let Some(slot) = graph.edges_mut().get_mut(k as usize) {
-            slot.measurement = current;
+            slot.measurement = zt.compose(&Se2::from_vector(&d));
             slot.information = combined;
         }
         return true;
@@ -493,6 +552,9 @@ pub fn prune(
     if s.node_information.len() < nc
         || s.candidates.len() < nc
         || s.order.len() < nc
+        || s.keys.len() < nc
+        || s.geometric.len() < nc
+        || s.cells.len() < nc
         || s.keep.len() < nc
         || s.head.len() < nc
         || s.edge_alive.len() < ec
@@ -534,7 +596,12 @@ pub fn prune(
     let stats = cells::select(
         s.candidates.get(..n).unwrap_or(&[]),
         &params.cells,
-        s.order,
+        &mut CellScratch {
+            order: s.order,
+            keys: s.keys,
+            geometric: s.geometric,
+            cells: s.cells,
+        },
         s.keep,
     )
     .map_err(|e| match e {
@@ -544,22 +611,70 @@ pub fn prune(
     report.cells = stats.cells;
     report.cell_stats = stats;
 
-    // 2. Eliminate.
+    // 2. Eliminate, in passes of growing blanket size: a cheap minimum-degree order that
+    // keeps fill-in (and so blanket sizes and edge counts) low. Until compaction `order` marks
+    // the nodes already eliminated.
     for (k, a) in s.edge_alive.iter_mut().enumerate() {
         *a = k < m;
     }
     build_incidence(graph, s);
+    for o in s.order.iter_mut().take(n) {
+        *o = 0;
+    }
+    for limit in ELIMINATION_PASSES {
+        for i in 0..n {
+            if s.keep.get(i).copied().unwrap_or(true) || s.order.get(i).copied().unwrap_or(1) != 0 {
+                continue;
+            }
+            if report.eliminated >= params.max_eliminations {
+                break;
+            }
+            if blanket_size(i, graph, s).is_none_or(|b| b > limit) {
+                continue;
+            }
+            if eliminate(i, graph, s, params, &mut report) {
+                report.eliminated += 1;
+                if let Some(o) = s.order.get_mut(i) {
+                    *o = 1;
+                }
+            }
+        }
+    }
+    // A node that cannot be eliminated (its blanket is too large) becomes its cell's
+    // representative instead of the winner, when the winner itself can go: still one node per
+    // cell.
     for i in 0..n {
-        if s.keep.get(i).copied().unwrap_or(true) {
+        let pending = |s: &PruneScratch<'_>, i: usize| {
+            !s.keep.get(i).copied().unwrap_or(true) && s.order.get(i).copied().unwrap_or(1) == 0
+        };
+        if !pending(s, i) {
             continue;
         }
-        if eliminate(i, graph, s, params, &mut report) {
+        let cell = s.keys.get(i).copied();
+        let winner = (0..n).find(|&w| {
+            s.keep.get(w).copied().unwrap_or(false)
+                && !s.candidates.get(w).is_none_or(|c| c.protected)
+                && s.keys.get(w).copied() == cell
+        });
+        let swapped = winner.is_some_and(|w| {
+            report.eliminated < params.max_eliminations
+                && blanket_size(w, graph, s).is_some()
+                && eliminate(w, graph, s, params, &mut report)
+        });
+        if let (true, Some(w)) = (swapped, winner) {
             report.eliminated += 1;
-        } else {
-            report.kept_not_eliminable += 1;
-            if let Some(k) = s.keep.get_mut(i) {
-                *k = true;
+            report.swapped_representatives += 1;
+            if let Some(k) = s.keep.get_mut(w) {
+                *k = false;
             }
+            if let Some(o) = s.order.get_mut(w) {
+                *o = 1;
+            }
+        } else if report.eliminated < params.max_eliminations {
+            report.kept_not_eliminable += 1;
+        }
+        if let Some(k) = s.keep.get_mut(i) {
+            *k = true;
         }
     }
 
@@ -680,6 +795,61 @@ mod tests {
         for (a, b) in kept.iter().zip(g.nodes()) {
             assert!((a.to_vector() - b.pose.to_vector()).amax() < 1e-9);
         }
+    }
+
+    #[test]
+    fn pruning_an_optimized_noisy_loop_barely_moves_the_kept_nodes() {
+        extern crate std;
+        let mut storage = GraphStorage::<128, 256>::new();
+        let mut g = storage.graph();
+        square_loop(&mut g);
+        // Make the loop closure disagree with odometry by 20 cm and 2 degrees, plus a second
+        // loop closure across the square, then optimize: every node carries some tension.
+        let last = g.edge_count() - 1;
+        let z = g.edges()[last]
+            .measurement
+            .compose(&Se2::new(0.2, -0.1, 0.035));
+        g.edges_mut()[last].measurement = z;
+        let cross = g
+            .node(NodeId(8))
+            .unwrap()
+            .pose
+            .between(&g.node(NodeId(40)).unwrap().pose);
+        let info = Matrix3::from_diagonal(&Vector3::new(50.0, 50.0, 200.0));
+        g.add_edge(PoseEdge::new(
+            NodeId(8),
+            NodeId(40),
+            cross.compose(&Se2::new(0.1, 0.05, -0.02)),
+            info,
+            EdgeKind::Loop,
+        ))
+        .unwrap();
+        let mut ws = SolverWorkspace::<128, 256, 4096>::new();
+        solve(&mut g, &mut ws.buffers(), &SolverOptions::default()).unwrap();
+        let full: std::vec::Vec<Se2> = g.nodes().iter().map(|n| n.pose).collect();
+        let mut scratch = PruneStorage::<128, 256>::new();
+        let params = PruneParams {
+            cells: CellParams {
+                cell_size: 1.0,
+                s: 0.5,
+            },
+            ..PruneParams::default()
+        };
+        prune(&mut g, &params, &mut scratch.scratch()).unwrap();
+        let remap: std::vec::Vec<u32> = scratch.order[..65].to_vec();
+        solve(&mut g, &mut ws.buffers(), &SolverOptions::default()).unwrap();
+        let mut worst: f64 = 0.0;
+        for (old, &new) in remap.iter().enumerate() {
+            if new != u32::MAX {
+                let a = full[old];
+                let b = g.node(NodeId(new)).unwrap().pose;
+                worst = worst.max((a.x - b.x).hypot(a.y - b.y));
+            }
+        }
+        // Tree edges measure the current estimate (the and Kretzschmar's choice; see
+        // the module docs), so the residual pull of the eliminated edges is dropped and the kept
+        // nodes relax a little: by a small fraction of the loop's 20 cm inconsistency.
+        assert!(worst < 0.02, "kept nodes moved by up to {worst} m");
     }
 
     #[test]

@@ -83,14 +83,37 @@ pub fn symmetrize(m: &Matrix3<f64>) -> Matrix3<f64> {
     (m + m.transpose()) * 0.5
 }
 
-/// Inverse of a symmetric positive-definite 3x3 matrix by Cholesky; `None` when it is not
-/// positive definite or not finite.
+/// Leading principal minors `(m1, m2, m3)` of the symmetric part of `m`; `m` is positive
+/// definite exactly when all three are positive (Sylvester's criterion), and the pivots of its
+/// Cholesky factorization are `m1`, `m2 / m1`, `m3 / m2`.
+#[inline]
+fn leading_minors(m: &Matrix3<f64>) -> (f64, f64, f64) {
+    let (a, b, c) = (m[(0, 0)], m[(0, 1)], m[(0, 2)]);
+    let (d, e, f) = (m[(1, 1)], m[(1, 2)], m[(2, 2)]);
+    let m2 = a * d - b * b;
+    let m3 = a * (d * f - e * e) - b * (b * f - c * e) + c * (b * e - c * d);
+    (a, m2, m3)
+}
+
+/// Inverse of a symmetric positive-definite 3x3 matrix (closed form: adjugate over
+/// determinant, after Sylvester's test); `None` when it is not positive definite or not finite.
+/// Only the upper triangle is read.
 pub fn spd_inverse(m: &Matrix3<f64>) -> Option<Matrix3<f64>> {
-    if !m.iter().all(|v| v.is_finite()) {
+    let (m1, m2, m3) = leading_minors(m);
+    if !(m1 > 0.0 && m2 > 0.0 && m3 > 0.0 && m3.is_finite()) {
         return None;
     }
-    let inv = Cholesky::new(*m)?.inverse();
-    inv.iter().all(|v| v.is_finite()).then(|| symmetrize(&inv))
+    let (a, b, c) = (m[(0, 0)], m[(0, 1)], m[(0, 2)]);
+    let (d, e, f) = (m[(1, 1)], m[(1, 2)], m[(2, 2)]);
+    let inv_det = 1.0 / m3;
+    let i00 = (d * f - e * e) * inv_det;
+    let i01 = (c * e - b * f) * inv_det;
+    let i02 = (b * e - c * d) * inv_det;
+    let i11 = (a * f - c * c) * inv_det;
+    let i12 = (b * c - a * e) * inv_det;
+    let i22 = m2 * inv_det;
+    let inv = Matrix3::new(i00, i01, i02, i01, i11, i12, i02, i12, i22);
+    inv.iter().all(|v| v.is_finite()).then_some(inv)
 }
 
 /// Squared Mahalanobis distance `d^T cov^-1 d`; `None` when `cov` is not positive definite.
@@ -107,7 +130,8 @@ pub fn pose_squared_mahalanobis(a: &Se2, b: &Se2, cov: &Cov3) -> Option<f64> {
     squared_mahalanobis(&a.global_difference(b), cov)
 }
 
-/// Smallest eigenvalue ratio (min/max) below which a covariance counts as near-singular.
+/// Ratio of the smallest Cholesky pivot to the largest diagonal entry below which a covariance
+/// counts as near-singular.
 pub const NEAR_SINGULAR_RATIO: f64 = 1e-12;
 
 /// Scalar information of a relation with covariance `cov`, after the paper's eq. (1): the
@@ -129,11 +153,17 @@ pub fn information_heuristic(cov: &Cov3) -> f64 {
     f64::MAX
 }
 
+/// The inverse when the matrix is positive definite and its smallest Cholesky pivot is above
+/// [`NEAR_SINGULAR_RATIO`] times its largest diagonal entry. (Every pivot of an SPD matrix lies
+/// between its extreme eigenvalues, so this is a cheap stand-in for the eigenvalue ratio.)
 fn well_conditioned_inverse(cov: &Cov3) -> Option<Info3> {
-    let eig = cov.symmetric_eigenvalues();
-    let max = eig.max();
-    let min = eig.min();
-    if max.is_nan() || max <= 0.0 || min <= max * NEAR_SINGULAR_RATIO {
+    let max_diag = cov[(0, 0)].max(cov[(1, 1)]).max(cov[(2, 2)]);
+    let (m1, m2, m3) = leading_minors(cov);
+    if !(max_diag > 0.0 && m1 > 0.0 && m2 > 0.0 && m3 > 0.0) {
+        return None;
+    }
+    let min_pivot = m1.min(m2 / m1).min(m3 / m2);
+    if min_pivot <= max_diag * NEAR_SINGULAR_RATIO {
         return None;
     }
     spd_inverse(cov)

@@ -160,6 +160,12 @@ impl Se2 {
     /// Jacobians of [`Se2::between`] with respect to `self` and to `other`.
     pub fn between_jacobians(&self, other: &Se2) -> JacobianPair {
         let (c, s) = self.cos_sin();
+        self.between_jacobians_trig(c, s, other)
+    }
+
+    /// [`Se2::between_jacobians`] with `cos(self.theta)` and `sin(self.theta)` already known
+    /// (saves the trigonometry when one pose is paired with many).
+    pub fn between_jacobians_trig(&self, c: f64, s: f64, other: &Se2) -> JacobianPair {
         let dx = other.x - self.x;
         let dy = other.y - self.y;
         let ja = Matrix3::new(

@@ -419,7 +419,7 @@ impl<'a> PoseGraph<'a> {
         }
         self.node_count = next;
         let mut kept = 0usize;
-        for k in 0..m {
+        for (k, &keep) in keep_edge.iter().enumerate().take(m) {
             let mut e = self.edges[k];
             let at = |id: NodeId| {
                 remap
@@ -428,7 +428,7 @@ impl<'a> PoseGraph<'a> {
                     .filter(|_| (id.0 as usize) < n)
             };
             let (a, b) = (at(e.from).unwrap_or(u32::MAX), at(e.to).unwrap_or(u32::MAX));
-            if keep_edge[k] && a != u32::MAX && b != u32::MAX {
+            if keep && a != u32::MAX && b != u32::MAX {
                 e.from = NodeId(a);
                 e.to = NodeId(b);
                 self.edges[kept] = e;
