@@ -286,7 +286,7 @@ pub fn prune_file(args: &PruneArgs) -> Result<(PruneJson, Vec<Se2>, Vec<PoseEdge
 
     // 4. Density of the result.
     let mut per_cell = std::collections::BTreeMap::<CellKey, usize>::new();
-    for p in &pruned {
+    for p in &kept_original {
         *per_cell
             .entry(CellKey::of(p.x, p.y, args.cell))
             .or_default() += 1;

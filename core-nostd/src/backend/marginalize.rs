@@ -291,9 +291,10 @@ pub fn chow_liu_edges(
     let mut rel = [[Matrix3::zeros(); MAX_BLANKET]; MAX_BLANKET];
     for i in 0..k {
         for j in (i + 1)..k {
-            if let (Some(c), Some(row)) =
-                (relative_covariance(blanket, &trig, marginal, i, j), rel.get_mut(i))
-            {
+            if let (Some(c), Some(row)) = (
+                relative_covariance(blanket, &trig, marginal, i, j),
+                rel.get_mut(i),
+            ) {
                 if let Some(slot) = row.get_mut(j) {
                     *slot = c;
                 }
