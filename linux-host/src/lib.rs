@@ -8,3 +8,4 @@ pub mod dataset;
 pub mod graph_io;
 pub mod optimize;
 pub mod prune;
+pub mod prune_online;

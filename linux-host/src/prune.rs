@@ -51,6 +51,16 @@ pub struct PruneArgs {
     /// each time) and report the median times.
     #[arg(long, default_value_t = 1)]
     pub repeat: usize,
+    /// Stream the graph node by node through a fixed pool instead (the mapper's online mode);
+    /// reports the pool's peak use and the ARPS against the batch optimum.
+    #[arg(long)]
+    pub online: bool,
+    /// Online mode: node capacity of the pool.
+    #[arg(long, default_value_t = 1500)]
+    pub pool: usize,
+    /// Online mode: nodes per optimized window.
+    #[arg(long, default_value_t = 50)]
+    pub window: usize,
     /// Most nodes to eliminate (a work budget; default: all the cell rule selects).
     #[arg(long)]
     pub max_eliminations: Option<usize>,
@@ -136,6 +146,29 @@ pub fn arps(original: &[Se2], pruned: &[Se2]) -> Option<(f64, usize)> {
         used += 1;
     }
     (used > 0).then(|| (100.0 * sum / used as f64, at_origin))
+}
+
+/// The batch optimum of a whole graph file from the initial guess `init`.
+///
+/// # Errors
+/// The graph cannot be built or the solve fails.
+pub fn batch_optimum(file: &GraphFile, init: &[Se2]) -> Result<Vec<Se2>> {
+    let nodes = file.pose_nodes(init);
+    let edges = file.pose_edges();
+    let (n, m) = (nodes.len(), edges.len());
+    let mut node_store = vec![PoseNode::EMPTY; n];
+    let mut edge_store = vec![PoseEdge::EMPTY; m];
+    let mut g = PoseGraph::new(&mut node_store, &mut edge_store);
+    for node in nodes {
+        g.add_node_full(node)?;
+    }
+    for e in edges {
+        g.add_edge(e)?;
+    }
+    let mut ws = HostWorkspace::new(n, m, (16 * n).max(2 * m) + 1024);
+    ws.solve(&mut g, &SolverOptions::default())
+        .map_err(|f| anyhow::anyhow!("batch optimum: {f}"))?;
+    Ok(g.nodes().iter().map(|p| p.pose).collect())
 }
 
 /// Median of a non-empty list of times.
@@ -357,6 +390,32 @@ fn pruned_file(_json: &PruneJson, poses: &[Se2], edges: &[PoseEdge]) -> GraphFil
 /// # Errors
 /// See [`prune_file`]; output files that cannot be written.
 pub fn run(args: &PruneArgs, out: &mut dyn Write) -> Result<()> {
+    if args.online {
+        let file = graph_io::read_graph(&args.input, args.format)?;
+        let init = if args.odometry_init {
+            file.odometry_guess()
+        } else {
+            file.poses.clone()
+        };
+        let batch = batch_optimum(&file, &init)?;
+        let report = crate::prune_online::run_online(
+            &file,
+            &batch,
+            &crate::prune_online::OnlineSettings {
+                pool_nodes: args.pool,
+                pool_edges: 4 * args.pool,
+                window: args.window,
+                cell: args.cell,
+                s: args.s,
+            },
+        )?;
+        let text = serde_json::to_string_pretty(&report)?;
+        if let Some(path) = &args.report {
+            graph_io::write_atomically(path, &text)?;
+        }
+        writeln!(out, "{text}")?;
+        return Ok(());
+    }
     let (json, poses, edges) = prune_file(args)?;
     let text = serde_json::to_string_pretty(&json)?;
     if let Some(path) = &args.out {

@@ -42,6 +42,9 @@ fn args(path: std::path::PathBuf, cell: f64, weight: WeightArg) -> PruneArgs {
         s: 0.5,
         odometry_init: false,
         repeat: 1,
+        online: false,
+        pool: 1500,
+        window: 50,
         max_eliminations: None,
         out: None,
         report: None,
@@ -111,4 +114,29 @@ fn node_information_weight_selects_the_same_density_on_csail() {
     );
     assert!(r.nodes_after <= 327 && r.nodes_per_cell_max <= 2);
     assert!(r.arps_percent < 0.78);
+}
+
+#[test]
+fn online_m3500_through_a_pool_of_1500_nodes() {
+    use cloi_host::graph_io::read_graph;
+    use cloi_host::prune::batch_optimum;
+    use cloi_host::prune_online::{run_online, OnlineSettings};
+    let Some(path) = shared_file("g2o/M3500.g2o") else {
+        return;
+    };
+    let file = read_graph(&path, None).expect("reads");
+    let batch = batch_optimum(&file, &file.poses).expect("batch optimum");
+    let cfg = OnlineSettings {
+        pool_nodes: 1500,
+        pool_edges: 6000,
+        window: 50,
+        cell: 1.02,
+        s: 0.5,
+    };
+    let r = run_online(&file, &batch, &cfg).expect("streams through the pool");
+    println!("M3500 online: {r:?}");
+    assert!(r.peak_nodes <= 1500 && r.peak_edges <= 6000, "{r:?}");
+    assert!(r.prunes >= 1, "the pool must have been pruned");
+    // Against the batch optimum of the whole graph, below the paper's batch-pruning ARPS.
+    assert!(r.arps_vs_batch_percent < 4.2, "{r:?}");
 }
