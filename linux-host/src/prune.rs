@@ -171,17 +171,91 @@ pub fn batch_optimum(file: &GraphFile, init: &[Se2]) -> Result<Vec<Se2>> {
     Ok(g.nodes().iter().map(|p| p.pose).collect())
 }
 
+/// Result of [`eval_arps`].
+#[derive(Debug, Clone, Serialize)]
+pub struct ArpsJson {
+    /// ARPS, percent.
+    pub arps_percent: f64,
+    /// Vertices of the pruned graph matched by id in the original.
+    pub nodes_matched: usize,
+    /// Matched nodes left out because they sit within 1 mm of the origin in the original.
+    pub nodes_at_origin: usize,
+    /// Largest position shift of a matched node, metres.
+    pub max_shift_m: f64,
+    /// Whether the original graph was optimized first.
+    pub original_optimized: bool,
+}
+
+/// `cloi eval arps`: ARPS of a pruned graph against its original, matching vertices by id.
+/// The original is optimized first (the paper's reference is the optimized full graph) unless
+/// `as_is` is set.
+///
+/// # Errors
+/// A file cannot be read, a pruned vertex is missing from the original, or the solve fails.
+pub fn eval_arps(
+    original: &std::path::Path,
+    pruned: &std::path::Path,
+    as_is: bool,
+) -> Result<ArpsJson> {
+    let a = graph_io::read_graph(original, None)?;
+    let b = graph_io::read_graph(pruned, None)?;
+    let reference = if as_is {
+        a.poses.clone()
+    } else {
+        batch_optimum(&a, &a.poses)?
+    };
+    let index: std::collections::HashMap<i64, usize> =
+        a.ids.iter().enumerate().map(|(i, id)| (*id, i)).collect();
+    let mut orig = Vec::with_capacity(b.ids.len());
+    for id in &b.ids {
+        let Some(&i) = index.get(id) else {
+            bail!(
+                "{}: vertex {id} is not in {}",
+                pruned.display(),
+                original.display()
+            );
+        };
+        orig.push(reference[i]);
+    }
+    let (arps_percent, nodes_at_origin) = arps(&orig, &b.poses).unwrap_or((0.0, 0));
+    let max_shift_m = orig
+        .iter()
+        .zip(&b.poses)
+        .map(|(o, p)| (o.x - p.x).hypot(o.y - p.y))
+        .fold(0.0, f64::max);
+    Ok(ArpsJson {
+        arps_percent,
+        nodes_matched: b.ids.len(),
+        nodes_at_origin,
+        max_shift_m,
+        original_optimized: !as_is,
+    })
+}
+
 /// Median of a non-empty list of times.
 fn median(v: &mut [f64]) -> f64 {
     v.sort_by(f64::total_cmp);
     v.get(v.len() / 2).copied().unwrap_or(0.0)
 }
 
-/// Runs the experiment; returns the report and the pruned graph's poses and edges.
+/// The result of [`prune_file`].
+#[derive(Debug, Clone)]
+pub struct Pruned {
+    /// The report.
+    pub report: PruneJson,
+    /// Optimized poses of the kept nodes.
+    pub poses: Vec<Se2>,
+    /// Edges of the pruned graph (node indices into `poses`).
+    pub edges: Vec<PoseEdge>,
+    /// Original vertex id of each kept node.
+    pub ids: Vec<i64>,
+}
+
+/// Runs the experiment; returns the report and the pruned graph.
 ///
 /// # Errors
 /// Unreadable input, a failed full solve, or bad parameters.
-pub fn prune_file(args: &PruneArgs) -> Result<(PruneJson, Vec<Se2>, Vec<PoseEdge>)> {
+pub fn prune_file(args: &PruneArgs) -> Result<Pruned> {
     if !(args.cell > 0.0 && args.cell.is_finite()) {
         bail!(
             "--cell must be a positive number of metres, got {}",
@@ -362,17 +436,27 @@ pub fn prune_file(args: &PruneArgs) -> Result<(PruneJson, Vec<Se2>, Vec<PoseEdge
         outliers_dropped: report.outliers_dropped,
         max_tree_offset_m: report.max_tree_offset_m,
     };
-    Ok((json, pruned, pruned_edges))
+    let ids = (0..n)
+        .filter(|&i| order[i] != u32::MAX)
+        .map(|i| file.ids[i])
+        .collect();
+    Ok(Pruned {
+        report: json,
+        poses: pruned,
+        edges: pruned_edges,
+        ids,
+    })
 }
 
-/// The pruned graph as a [`GraphFile`] for the g2o writer (nodes renumbered densely).
-fn pruned_file(_json: &PruneJson, poses: &[Se2], edges: &[PoseEdge]) -> GraphFile {
+/// The pruned graph as a [`GraphFile`] for the g2o writer, with the original vertex ids.
+fn pruned_file(p: &Pruned) -> GraphFile {
     GraphFile {
-        ids: (0..poses.len() as i64).collect(),
-        poses: poses.to_vec(),
-        fixed: vec![false; poses.len()],
+        ids: p.ids.clone(),
+        poses: p.poses.clone(),
+        fixed: vec![false; p.poses.len()],
         has_vertices: true,
-        edges: edges
+        edges: p
+            .edges
             .iter()
             .map(|e| FileEdge {
                 from: e.from.0 as usize,
@@ -416,12 +500,12 @@ pub fn run(args: &PruneArgs, out: &mut dyn Write) -> Result<()> {
         writeln!(out, "{text}")?;
         return Ok(());
     }
-    let (json, poses, edges) = prune_file(args)?;
-    let text = serde_json::to_string_pretty(&json)?;
+    let pruned = prune_file(args)?;
+    let text = serde_json::to_string_pretty(&pruned.report)?;
     if let Some(path) = &args.out {
         graph_io::write_atomically(
             path,
-            &graph_io::write_g2o(&pruned_file(&json, &poses, &edges), &poses),
+            &graph_io::write_g2o(&pruned_file(&pruned), &pruned.poses),
         )?;
     }
     if let Some(path) = &args.report {

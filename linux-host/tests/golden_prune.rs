@@ -57,7 +57,9 @@ fn table_iii_with_the_edge_information_weight() {
         let Some(path) = shared_file(row.file) else {
             continue;
         };
-        let (r, _, _) = prune_file(&args(path, row.cell, WeightArg::Eq4)).expect("prune runs");
+        let r = prune_file(&args(path, row.cell, WeightArg::Eq4))
+            .expect("prune runs")
+            .report;
         println!(
             "{}: nodes {} -> {}, edges {} -> {}, npc {:.3} (max {}), e/n {:.2}, ARPS {:.3} %",
             row.file,
@@ -107,7 +109,9 @@ fn node_information_weight_selects_the_same_density_on_csail() {
     let Some(path) = shared_file("g2o/CSAIL.g2o") else {
         return;
     };
-    let (r, _, _) = prune_file(&args(path, 1.0, WeightArg::Eq3)).expect("prune runs");
+    let r = prune_file(&args(path, 1.0, WeightArg::Eq3))
+        .expect("prune runs")
+        .report;
     println!(
         "CSAIL eq. 3: nodes {} ARPS {:.3} % prune {:.1} ms",
         r.nodes_after, r.arps_percent, r.prune_ms
