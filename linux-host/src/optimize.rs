@@ -9,8 +9,7 @@ use anyhow::{bail, Context, Result};
 use cloi_core::geom::Se2;
 use cloi_core::graph::{EdgeKind, PoseEdge, PoseGraph, PoseNode, RobustKernel};
 use cloi_core::solver::{
-    self, Block, Method, SolveError, SolveFailure, SolveReport, SolverBuffers, SolverOptions,
-    Vec3,
+    self, Block, Method, SolveError, SolveFailure, SolveReport, SolverBuffers, SolverOptions, Vec3,
 };
 use serde::Serialize;
 
@@ -82,6 +81,9 @@ pub struct OptimizeArgs {
     /// Convergence threshold on the relative cost decrease of one iteration.
     #[arg(long, default_value_t = 1e-8)]
     pub rel_tol: f64,
+    /// Skip the linear (LAGO-style) re-initialisation of headings and positions.
+    #[arg(long)]
+    pub no_linear_init: bool,
     /// Write the optimized graph here (g2o).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -211,7 +213,11 @@ impl HostWorkspace {
             let start: Vec<PoseNode> = graph.nodes().to_vec();
             match solver::solve(graph, &mut self.buffers(), options) {
                 Err(SolveFailure {
-                    error: SolveError::Capacity { what: "factor blocks", capacity },
+                    error:
+                        SolveError::Capacity {
+                            what: "factor blocks",
+                            capacity,
+                        },
                     ..
                 }) if capacity < (1 << 30) => {
                     graph.nodes_mut().copy_from_slice(&start);
@@ -225,7 +231,12 @@ impl HostWorkspace {
 }
 
 /// Robust kernel for a loop-closure edge under `mode`.
-pub fn loop_kernel(mode: RobustMode, width: f64, null_weight: f32, null_scale: f32) -> RobustKernel {
+pub fn loop_kernel(
+    mode: RobustMode,
+    width: f64,
+    null_weight: f32,
+    null_scale: f32,
+) -> RobustKernel {
     match mode {
         RobustMode::None => RobustKernel::None,
         RobustMode::Huber => RobustKernel::Huber { delta: width },
@@ -257,7 +268,12 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
         InitMode::Odometry => graph.odometry_guess(),
     };
     let nodes = graph.pose_nodes(&init);
-    let kernel = loop_kernel(args.robust, args.kernel_width, args.null_weight, args.null_scale);
+    let kernel = loop_kernel(
+        args.robust,
+        args.kernel_width,
+        args.null_weight,
+        args.null_scale,
+    );
     let mut edges: Vec<PoseEdge> = graph.pose_edges();
     for e in &mut edges {
         if e.kind == EdgeKind::Loop {
@@ -284,6 +300,7 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
         },
         max_iterations: args.max_iters,
         relative_tolerance: args.rel_tol,
+        linear_init: !args.no_linear_init,
         ..SolverOptions::default()
     };
     let t0 = Instant::now();
@@ -300,7 +317,8 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
             .iter()
             .filter(|e| e.kind == EdgeKind::Loop)
             .filter(|e| {
-                let c = e.chi2_of(&e.residual(&all[e.from.0 as usize].pose, &all[e.to.0 as usize].pose));
+                let c = e
+                    .chi2_of(&e.residual(&all[e.from.0 as usize].pose, &all[e.to.0 as usize].pose));
                 e.robust.weigh(c).0 < 1.0
             })
             .count()
@@ -377,8 +395,13 @@ pub fn run(args: &OptimizeArgs, out: &mut dyn Write) -> Result<()> {
         r.final_chi2,
         r.time_ms,
         r.converged,
-        r.rmse_m.map(|v| format!(", rmse {v:.4} m")).unwrap_or_default(),
-        r.error.as_ref().map(|e| format!(" ({e})")).unwrap_or_default(),
+        r.rmse_m
+            .map(|v| format!(", rmse {v:.4} m"))
+            .unwrap_or_default(),
+        r.error
+            .as_ref()
+            .map(|e| format!(" ({e})"))
+            .unwrap_or_default(),
     )?;
     match &r.error {
         Some(e) if e != &SolveError::MaxIterations.to_string() => {
@@ -393,4 +416,3 @@ fn display_name(p: &Path) -> String {
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| p.display().to_string())
 }
-

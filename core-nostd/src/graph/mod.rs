@@ -71,7 +71,13 @@ pub struct PoseEdge {
 
 impl PoseEdge {
     /// A plain (non-robust) edge.
-    pub fn new(from: NodeId, to: NodeId, measurement: Se2, information: Info3, kind: EdgeKind) -> Self {
+    pub fn new(
+        from: NodeId,
+        to: NodeId,
+        measurement: Se2,
+        information: Info3,
+        kind: EdgeKind,
+    ) -> Self {
         PoseEdge {
             from,
             to,
@@ -148,7 +154,10 @@ impl fmt::Display for GraphError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             GraphError::Full { what, capacity } => {
-                write!(f, "the pose graph's {what} storage is full (capacity {capacity})")
+                write!(
+                    f,
+                    "the pose graph's {what} storage is full (capacity {capacity})"
+                )
             }
             GraphError::UnknownNode(n) => write!(f, "edge refers to unknown node {}", n.0),
             GraphError::BadEndpoints(a, b) => {
@@ -257,10 +266,13 @@ impl<'a> PoseGraph<'a> {
         }
         let id = NodeId(self.node_count as u32);
         let capacity = self.nodes.len();
-        let slot = self.nodes.get_mut(self.node_count).ok_or(GraphError::Full {
-            what: "nodes",
-            capacity,
-        })?;
+        let slot = self
+            .nodes
+            .get_mut(self.node_count)
+            .ok_or(GraphError::Full {
+                what: "nodes",
+                capacity,
+            })?;
         *slot = node;
         self.node_count += 1;
         Ok(id)
@@ -285,10 +297,13 @@ impl<'a> PoseGraph<'a> {
         }
         let id = EdgeId(self.edge_count as u32);
         let capacity = self.edges.len();
-        let slot = self.edges.get_mut(self.edge_count).ok_or(GraphError::Full {
-            what: "edges",
-            capacity,
-        })?;
+        let slot = self
+            .edges
+            .get_mut(self.edge_count)
+            .ok_or(GraphError::Full {
+                what: "edges",
+                capacity,
+            })?;
         *slot = edge;
         self.edge_count += 1;
         Ok(id)
@@ -347,7 +362,10 @@ impl<'a> PoseGraph<'a> {
     /// Both node and edge slices at once (nodes mutable), for the solver.
     #[inline]
     pub(crate) fn split_mut(&mut self) -> (&mut [PoseNode], &[PoseEdge]) {
-        (&mut self.nodes[..self.node_count], &self.edges[..self.edge_count])
+        (
+            &mut self.nodes[..self.node_count],
+            &self.edges[..self.edge_count],
+        )
     }
 
     /// The sum of `e^T Omega e` over all edges (the g2o convention, robust models ignored).
@@ -374,10 +392,22 @@ mod tests {
         let a = g.add_node(Se2::IDENTITY).unwrap();
         let b = g.add_node(Se2::new(1.0, 0.0, 0.0)).unwrap();
         let info = Info3::identity();
-        g.add_edge(PoseEdge::new(a, b, Se2::new(1.0, 0.0, 0.0), info, EdgeKind::Odometry))
-            .unwrap();
+        g.add_edge(PoseEdge::new(
+            a,
+            b,
+            Se2::new(1.0, 0.0, 0.0),
+            info,
+            EdgeKind::Odometry,
+        ))
+        .unwrap();
         assert_eq!(
-            g.add_edge(PoseEdge::new(a, NodeId(7), Se2::IDENTITY, info, EdgeKind::Loop)),
+            g.add_edge(PoseEdge::new(
+                a,
+                NodeId(7),
+                Se2::IDENTITY,
+                info,
+                EdgeKind::Loop
+            )),
             Err(GraphError::UnknownNode(NodeId(7)))
         );
         assert_eq!(
@@ -385,11 +415,16 @@ mod tests {
             Err(GraphError::BadEndpoints(a, a))
         );
         assert_eq!(g.chi2(), 0.0);
-        g.add_edge(PoseEdge::prior(b, Se2::new(1.0, 0.5, 0.0), info)).unwrap();
+        g.add_edge(PoseEdge::prior(b, Se2::new(1.0, 0.5, 0.0), info))
+            .unwrap();
         assert!((g.chi2() - 0.25).abs() < 1e-12);
         g.add_node(Se2::IDENTITY).unwrap();
-        assert!(matches!(g.add_node(Se2::IDENTITY), Err(GraphError::Full { .. })));
-        g.add_edge(PoseEdge::new(a, b, Se2::IDENTITY, info, EdgeKind::Loop)).unwrap();
+        assert!(matches!(
+            g.add_node(Se2::IDENTITY),
+            Err(GraphError::Full { .. })
+        ));
+        g.add_edge(PoseEdge::new(a, b, Se2::IDENTITY, info, EdgeKind::Loop))
+            .unwrap();
         assert!(matches!(
             g.add_edge(PoseEdge::new(a, b, Se2::IDENTITY, info, EdgeKind::Loop)),
             Err(GraphError::Full { .. })

@@ -142,6 +142,19 @@ fn sub_v(acc: &mut Vec3, v: &Vec3) {
     acc[2] -= v[2];
 }
 
+/// Which unknowns an assembly linearizes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Stage {
+    /// Positions and headings (the Gauss-Newton system).
+    Full,
+    /// Headings only, from the angle residuals alone: with the angle differences taken at the
+    /// current estimate, this is linear, and one solve gives every heading consistent with
+    /// all loops at once (the first step of a LAGO-style initialisation).
+    Headings,
+    /// Positions only, headings held: again linear, one solve places every position.
+    Positions,
+}
+
 /// Assembles `H` and `-g` at the current poses (with the robust weights of this estimate) and
 /// returns the robust cost and the plain chi2 there.
 pub(crate) fn assemble(
@@ -149,6 +162,7 @@ pub(crate) fn assemble(
     edges: &[PoseEdge],
     vars: usize,
     nnz: usize,
+    stage: Stage,
     s: &mut System<'_>,
 ) -> (f64, f64) {
     for d in s.diag.iter_mut().take(vars) {
@@ -173,7 +187,7 @@ pub(crate) fn assemble(
         let omega = info_block(edge);
         let pi = s.node_var[edge.from.0 as usize];
         if edge.kind == EdgeKind::Prior {
-            let e = prior_residual(&ni.pose, &edge.measurement, cz, sz);
+            let mut e = prior_residual(&ni.pose, &edge.measurement, cz, sz);
             let c = quad(&omega, &e);
             let (w, rc) = edge.robust.weigh(c);
             chi2 += c;
@@ -181,7 +195,8 @@ pub(crate) fn assemble(
             if pi == NONE {
                 continue;
             }
-            let j: Block = [cz, sz, 0.0, -sz, cz, 0.0, 0.0, 0.0, 1.0];
+            let mut j: Block = [cz, sz, 0.0, -sz, cz, 0.0, 0.0, 0.0, 1.0];
+            restrict(stage, &mut e, &mut j, None);
             let wo = scale(&omega, w);
             let a = mul(&wo, &j);
             add(&mut s.diag[pi as usize], &mul_atb(&j, &a));
@@ -190,7 +205,7 @@ pub(crate) fn assemble(
         }
         let xi = &ni.pose;
         let (ci, si) = (libm::cos(xi.theta), libm::sin(xi.theta));
-        let (e, [ca, sa, gx, gy]) =
+        let (mut e, [ca, sa, gx, gy]) =
             relative_residual(xi, ci, si, &nj.pose, &edge.measurement, cz, sz);
         let c = quad(&omega, &e);
         let (w, rc) = edge.robust.weigh(c);
@@ -201,8 +216,9 @@ pub(crate) fn assemble(
             continue;
         }
         let wo = scale(&omega, w);
-        let jj: Block = [ca, sa, 0.0, -sa, ca, 0.0, 0.0, 0.0, 1.0];
-        let ji: Block = [-ca, -sa, gx, sa, -ca, gy, 0.0, 0.0, -1.0];
+        let mut jj: Block = [ca, sa, 0.0, -sa, ca, 0.0, 0.0, 0.0, 1.0];
+        let mut ji: Block = [-ca, -sa, gx, sa, -ca, gy, 0.0, 0.0, -1.0];
+        restrict(stage, &mut e, &mut jj, Some(&mut ji));
         let a = mul(&wo, &jj);
         if pj != NONE {
             add(&mut s.diag[pj as usize], &mul_atb(&jj, &a));
@@ -224,7 +240,45 @@ pub(crate) fn assemble(
             }
         }
     }
+    // Keep the unknowns a stage leaves out at zero with a unit diagonal.
+    let pad = match stage {
+        Stage::Full => None,
+        Stage::Headings => Some([0, 4]),
+        Stage::Positions => Some([8, 8]),
+    };
+    if let Some(idx) = pad {
+        for d in s.diag.iter_mut().take(vars) {
+            d[idx[0]] = 1.0;
+            d[idx[1]] = 1.0;
+        }
+    }
     (cost, chi2)
+}
+
+/// Restricts a residual and its Jacobians to the unknowns of `stage`.
+#[inline(always)]
+fn restrict(stage: Stage, e: &mut Vec3, jj: &mut Block, ji: Option<&mut Block>) {
+    match stage {
+        Stage::Full => {}
+        Stage::Headings => {
+            e[0] = 0.0;
+            e[1] = 0.0;
+            *jj = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, jj[8]];
+            if let Some(ji) = ji {
+                *ji = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, ji[8]];
+            }
+        }
+        Stage::Positions => {
+            jj[2] = 0.0;
+            jj[5] = 0.0;
+            jj[8] = 0.0;
+            if let Some(ji) = ji {
+                ji[2] = 0.0;
+                ji[5] = 0.0;
+                ji[8] = 0.0;
+            }
+        }
+    }
 }
 
 #[inline(always)]

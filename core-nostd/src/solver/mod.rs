@@ -35,8 +35,8 @@ pub use workspace::{AnalysisKey, Block, SolverBuffers, SolverWorkspace, Vec3};
 
 use core::fmt;
 
-use crate::graph::{PoseGraph, PoseNode};
 use crate::geom::wrap_angle;
+use crate::graph::{PoseGraph, PoseNode};
 use crate::storage::NodeId;
 
 pub(crate) use linearize::{prior_residual, relative_residual};
@@ -64,6 +64,11 @@ pub struct SolverOptions {
     pub step_tolerance: f64,
     /// Gauss-Newton diverged when the cost exceeds this multiple of the initial cost.
     pub divergence_factor: f64,
+    /// Before iterating, re-estimate every heading, then every position, from one linear
+    /// solve each (a LAGO-style initialisation from the given guess). It removes the bad
+    /// basins that odometry guesses lead Gauss-Newton into, at the price of two extra
+    /// factorizations; the robust weights of the initial guess apply.
+    pub linear_init: bool,
 }
 
 impl Default for SolverOptions {
@@ -74,6 +79,7 @@ impl Default for SolverOptions {
             relative_tolerance: 1e-8,
             step_tolerance: 1e-10,
             divergence_factor: 1e6,
+            linear_init: true,
         }
     }
 }
@@ -186,7 +192,18 @@ pub fn solve(
         ws.step.len(),
         ws.saved.len(),
     ];
-    if node_lens.iter().chain(ws.scratch.iter().map(|s| s.len()).collect::<Lens>().0.iter()).any(|&l| l < n) {
+    if node_lens
+        .iter()
+        .chain(
+            ws.scratch
+                .iter()
+                .map(|s| s.len())
+                .collect::<Lens>()
+                .0
+                .iter(),
+        )
+        .any(|&l| l < n)
+    {
         return fail(
             SolveError::Capacity {
                 what: "nodes",
@@ -240,7 +257,10 @@ pub fn solve(
     report.variables = vars;
     report.factor_blocks = nnz;
     for (t, e) in ws.edge_trig.iter_mut().zip(edges.iter()) {
-        *t = [libm::cos(e.measurement.theta), libm::sin(e.measurement.theta)];
+        *t = [
+            libm::cos(e.measurement.theta),
+            libm::sin(e.measurement.theta),
+        ];
     }
 
     // 2. Iterations.
@@ -255,6 +275,20 @@ pub fn solve(
     if vars == 0 {
         report.converged = true;
         return Ok(report);
+    }
+    if options.linear_init {
+        for stage in [linearize::Stage::Headings, linearize::Stage::Positions] {
+            if let Err(e) = linear_step(nodes, edges, ws, 0.0, false, stage) {
+                return fail(e, report);
+            }
+            apply_step(nodes, ws.var_node, ws.rhs, vars);
+        }
+        let (c, x) = linearize::evaluate(nodes, edges, ws.edge_trig);
+        report.final_cost = c;
+        report.final_chi2 = x;
+        if !c.is_finite() {
+            return fail(SolveError::Diverged, report);
+        }
     }
     let result = match options.method {
         Method::GaussNewton => gauss_newton(nodes, edges, ws, options, &mut report),
@@ -289,6 +323,7 @@ fn linear_step(
     ws: &mut SolverBuffers<'_>,
     lambda: f64,
     saved_rhs: bool,
+    stage: linearize::Stage,
 ) -> Result<(f64, f64, f64), SolveError> {
     let vars = ws.key.vars;
     let nnz = ws.key.nnz;
@@ -297,6 +332,7 @@ fn linear_step(
         edges,
         vars,
         nnz,
+        stage,
         &mut linearize::System {
             node_var: ws.node_var,
             edge_slot: ws.edge_slot,
@@ -344,7 +380,10 @@ fn apply_step(nodes: &mut [PoseNode], var_node: &[u32], dx: &[Vec3], vars: usize
             n.pose.x += d[0];
             n.pose.y += d[1];
             n.pose.theta = wrap_angle(n.pose.theta + d[2]);
-            largest = largest.max(libm::fabs(d[0])).max(libm::fabs(d[1])).max(libm::fabs(d[2]));
+            largest = largest
+                .max(libm::fabs(d[0]))
+                .max(libm::fabs(d[1]))
+                .max(libm::fabs(d[2]));
         }
     }
     if largest.is_finite() {
@@ -363,9 +402,9 @@ fn gauss_newton(
 ) -> Result<(), SolveError> {
     let vars = ws.key.vars;
     let limit = options.divergence_factor * report.initial_cost.max(1.0);
-    let mut cost = report.initial_cost;
+    let mut cost = report.final_cost;
     while report.iterations < options.max_iterations {
-        linear_step(nodes, edges, ws, 0.0, false)?;
+        linear_step(nodes, edges, ws, 0.0, false, linearize::Stage::Full)?;
         report.iterations += 1;
         let largest = apply_step(nodes, ws.var_node, ws.rhs, vars);
         let (new_cost, new_chi2) = linearize::evaluate(nodes, edges, ws.edge_trig);
@@ -395,7 +434,7 @@ fn levenberg_marquardt(
 ) -> Result<(), SolveError> {
     let vars = ws.key.vars;
     let n = nodes.len();
-    let mut cost = report.initial_cost;
+    let mut cost = report.final_cost;
     let mut lambda: f64 = -1.0;
     let mut nu = 2.0;
     let mut rejections = 0u32;
@@ -404,7 +443,7 @@ fn levenberg_marquardt(
             .iter_mut()
             .zip(nodes.iter())
             .for_each(|(s, node)| *s = node.pose);
-        let step = linear_step(nodes, edges, ws, lambda, true);
+        let step = linear_step(nodes, edges, ws, lambda, true, linearize::Stage::Full);
         report.iterations += 1;
         match step {
             Ok((_, _, used)) => lambda = used,
@@ -443,8 +482,7 @@ fn levenberg_marquardt(
             let t = 2.0 * rho - 1.0;
             lambda *= (1.0 - t * t * t).max(1.0 / 3.0);
             nu = 2.0;
-            if largest < options.step_tolerance || decrease <= options.relative_tolerance * cost
-            {
+            if largest < options.step_tolerance || decrease <= options.relative_tolerance * cost {
                 report.converged = true;
                 return Ok(());
             }

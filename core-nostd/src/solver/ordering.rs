@@ -257,8 +257,16 @@ pub(crate) fn analyze(
         if pi == NONE || pj == NONE || pi == pj {
             continue;
         }
-        let (row, col, flag) = if pi > pj { (pi, pj, 0) } else { (pj, pi, TRANSPOSED) };
-        let lo = if col == 0 { 0 } else { b.col_end[col as usize - 1] as usize };
+        let (row, col, flag) = if pi > pj {
+            (pi, pj, 0)
+        } else {
+            (pj, pi, TRANSPOSED)
+        };
+        let lo = if col == 0 {
+            0
+        } else {
+            b.col_end[col as usize - 1] as usize
+        };
         let hi = b.col_end[col as usize] as usize;
         match b.rows[lo..hi].binary_search(&row) {
             Ok(off) => *slot = (lo + off) as u32 | flag,

@@ -13,8 +13,8 @@ use super::{number, read_g2o, Where};
 /// # Errors
 /// The file cannot be read or a line is malformed (named by file and line).
 pub fn read_ground_truth(path: &Path) -> Result<Vec<Se2>> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     let first = text
         .lines()
         .map(str::trim)

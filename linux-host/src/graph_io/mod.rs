@@ -300,8 +300,8 @@ impl GraphFile {
 /// # Errors
 /// The file cannot be read, or a line is malformed (the message names file and line).
 pub fn read_graph(path: &Path, format: Option<GraphFormat>) -> Result<GraphFile> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
     match format.unwrap_or_else(|| GraphFormat::sniff(&text)) {
         GraphFormat::G2o => read_g2o(&text, path),
         GraphFormat::Toro => read_toro(&text, path),
