@@ -21,6 +21,8 @@ pub enum Command {
     Budget(cloi_budget::cli::BudgetArgs),
     /// Optimize a 2D pose graph (g2o or TORO) and report chi2, time and accuracy.
     Optimize(crate::optimize::OptimizeArgs),
+    /// Add seeded random false loop closures to a pose graph (robustness tests).
+    Corrupt(crate::corrupt::CorruptArgs),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -31,5 +33,6 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
     match cli.command {
         Command::Budget(args) => cloi_budget::cli::run(&args, out),
         Command::Optimize(args) => crate::optimize::run(&args, out),
+        Command::Corrupt(args) => crate::corrupt::run(&args, out),
     }
 }

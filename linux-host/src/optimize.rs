@@ -81,6 +81,17 @@ pub struct OptimizeArgs {
     /// Convergence threshold on the relative cost decrease of one iteration.
     #[arg(long, default_value_t = 1e-8)]
     pub rel_tol: f64,
+    /// Gauss-Newton stages over the node order (loops among the first s/S of the nodes act in
+    /// stage s).
+    #[arg(long, default_value_t = 1)]
+    pub stages: u32,
+    /// Max-mixture warm start: chi2 gate (3 degrees of freedom) of each loop against the
+    /// odometry chain's prediction and covariance; 0 disables it.
+    #[arg(long, default_value_t = 16.27)]
+    pub gate_chi2: f64,
+    /// Most iterations per stage (all stages but the last).
+    #[arg(long, default_value_t = 10)]
+    pub stage_iters: u32,
     /// Skip the linear (LAGO-style) re-initialisation of headings and positions.
     #[arg(long)]
     pub no_linear_init: bool,
@@ -130,6 +141,8 @@ pub struct OptimizeReport {
     pub factor_blocks: usize,
     /// Loop closures whose max-mixture picked the null hypothesis at the end.
     pub rejected_loops: Option<usize>,
+    /// Max-mixture loop closures that passed the odometry-chain gate of the warm start.
+    pub gated_loops: usize,
     /// Position RMSE against the ground truth after aligning the first pose, metres.
     pub rmse_m: Option<f64>,
 }
@@ -146,6 +159,7 @@ pub struct HostWorkspace {
     saved: Vec<Se2>,
     edge_slot: Vec<u32>,
     edge_trig: Vec<[f64; 2]>,
+    edge_flags: Vec<u8>,
     rows: Vec<u32>,
     values: Vec<Block>,
     adj_node: Vec<u32>,
@@ -171,6 +185,7 @@ impl HostWorkspace {
         self.saved.resize(nodes, Se2::IDENTITY);
         self.edge_slot.resize(edges, 0);
         self.edge_trig.resize(edges, [0.0; 2]);
+        self.edge_flags.resize(edges, 0);
         self.rows.resize(factor, 0);
         self.values.resize(factor, [0.0; 9]);
         self.adj_node.resize(2 * factor, 0);
@@ -193,6 +208,7 @@ impl HostWorkspace {
             scratch: [d, e, f, g, h, i],
             edge_slot: &mut self.edge_slot,
             edge_trig: &mut self.edge_trig,
+            edge_flags: &mut self.edge_flags,
             rows: &mut self.rows,
             values: &mut self.values,
             adj_node: &mut self.adj_node,
@@ -301,6 +317,9 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
         max_iterations: args.max_iters,
         relative_tolerance: args.rel_tol,
         linear_init: !args.no_linear_init,
+        stages: args.stages,
+        gate_chi2: args.gate_chi2,
+        stage_iterations: args.stage_iters,
         ..SolverOptions::default()
     };
     let t0 = Instant::now();
@@ -355,6 +374,7 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
         error: error.map(|e| e.to_string()),
         factor_blocks: rep.factor_blocks,
         rejected_loops,
+        gated_loops: rep.gated_loops,
         rmse_m,
     };
     if let Some(e) = error {

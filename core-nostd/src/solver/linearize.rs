@@ -95,15 +95,38 @@ fn info_block(edge: &PoseEdge) -> Block {
     ]
 }
 
-/// Robust cost and plain chi2 of the whole graph.
-pub(crate) fn evaluate(nodes: &[PoseNode], edges: &[PoseEdge], trig: &[[f64; 2]]) -> (f64, f64) {
+/// Whether `edge` takes part while only nodes below `limit` may close loops.
+#[inline(always)]
+pub(crate) fn within(edge: &PoseEdge, limit: usize) -> bool {
+    edge.kind != EdgeKind::Loop || (edge.from.0 as usize) < limit && (edge.to.0 as usize) < limit
+}
+
+/// Robust cost and plain chi2 of the edges within `limit` (see [`within`]).
+pub(crate) fn evaluate(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    trig: &[[f64; 2]],
+    limit: usize,
+    warm: Warm,
+    flags: &[u8],
+) -> (f64, f64) {
     let mut cost = 0.0;
     let mut chi2 = 0.0;
-    for (edge, t) in edges.iter().zip(trig) {
+    for (k, (edge, t)) in edges.iter().zip(trig).enumerate() {
+        if !within(edge, limit) {
+            continue;
+        }
+        if warm != Warm::Off
+            && flags
+                .get(k)
+                .is_some_and(|f| f & super::gate::GATE_PASSED == 0)
+        {
+            continue;
+        }
         if let Some(e) = edge_residual(nodes, edge, t) {
             let c = quad(&info_block(edge), &e);
             chi2 += c;
-            cost += edge.robust.weigh(c).1;
+            cost += weigh(edge, c, warm, flags.get(k).copied().unwrap_or(0)).1;
         }
     }
     (cost, chi2)
@@ -112,6 +135,9 @@ pub(crate) fn evaluate(nodes: &[PoseNode], edges: &[PoseEdge], trig: &[[f64; 2]]
 /// The system being assembled: slices of the solver's workspace.
 pub(crate) struct System<'s> {
     pub node_var: &'s [u32],
+    pub flags: &'s [u8],
+    /// How max-mixture edges are weighted.
+    pub warm: Warm,
     pub edge_slot: &'s [u32],
     pub trig: &'s [[f64; 2]],
     pub diag: &'s mut [Block],
@@ -183,13 +209,16 @@ pub(crate) fn assemble(
         ) else {
             continue;
         };
+        if s.flags[k] & 1 == 0 {
+            continue;
+        }
         let [cz, sz] = s.trig[k];
         let omega = info_block(edge);
         let pi = s.node_var[edge.from.0 as usize];
         if edge.kind == EdgeKind::Prior {
             let mut e = prior_residual(&ni.pose, &edge.measurement, cz, sz);
             let c = quad(&omega, &e);
-            let (w, rc) = edge.robust.weigh(c);
+            let (w, rc) = weigh(edge, c, s.warm, s.flags[k]);
             chi2 += c;
             cost += rc;
             if pi == NONE {
@@ -208,7 +237,7 @@ pub(crate) fn assemble(
         let (mut e, [ca, sa, gx, gy]) =
             relative_residual(xi, ci, si, &nj.pose, &edge.measurement, cz, sz);
         let c = quad(&omega, &e);
-        let (w, rc) = edge.robust.weigh(c);
+        let (w, rc) = weigh(edge, c, s.warm, s.flags[k]);
         chi2 += c;
         cost += rc;
         let pj = s.node_var[edge.to.0 as usize];
@@ -253,6 +282,36 @@ pub(crate) fn assemble(
         }
     }
     (cost, chi2)
+}
+
+/// How max-mixture edges are weighted during the warm start of a robust solve.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Warm {
+    /// By their own model (no warm start).
+    Off,
+    /// Nominal component (the loops that passed the odometry gate).
+    Nominal,
+    /// Dynamic covariance scaling (Agarwal et al.): information scaled by `s^2` with
+    /// `s = min(1, 2 / (1 + chi2))`.
+    Dcs,
+}
+
+/// The robust weight and cost of an edge under `warm`.
+#[inline(always)]
+fn weigh(edge: &PoseEdge, chi2: f64, warm: Warm, flag: u8) -> (f64, f64) {
+    if warm == Warm::Off || !matches!(edge.robust, crate::graph::RobustKernel::MaxMixture { .. }) {
+        return edge.robust.weigh(chi2);
+    }
+    match warm {
+        Warm::Dcs => {
+            let s = (2.0 / (1.0 + chi2)).min(1.0);
+            (s * s, s * s * chi2)
+        }
+        _ => {
+            let w = super::gate::stored_weight(flag);
+            (w, w * chi2)
+        }
+    }
 }
 
 /// Restricts a residual and its Jacobians to the unknowns of `stage`.
