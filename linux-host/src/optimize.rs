@@ -447,8 +447,16 @@ mod tests {
         let mut s = String::new();
         let mut pose = Se2::IDENTITY;
         let step = |i: usize| {
-            let turn = if i % 4 == 3 { std::f64::consts::FRAC_PI_2 } else { 0.0 };
-            Se2::new(1.0 + 0.01 * (i as f64).sin(), 0.02 * (i as f64).cos(), turn + 0.01)
+            let turn = if i % 4 == 3 {
+                std::f64::consts::FRAC_PI_2
+            } else {
+                0.0
+            };
+            Se2::new(
+                1.0 + 0.01 * (i as f64).sin(),
+                0.02 * (i as f64).cos(),
+                turn + 0.01,
+            )
         };
         for i in 0..16 {
             s += &format!("VERTEX_SE2 {i} {} {} {}\n", pose.x, pose.y, pose.theta);
@@ -456,7 +464,13 @@ mod tests {
         }
         for i in 0..15 {
             let z = step(i);
-            s += &format!("EDGE_SE2 {i} {} {} {} {} 100 0 0 100 0 1000\n", i + 1, z.x, z.y, z.theta);
+            s += &format!(
+                "EDGE_SE2 {i} {} {} {} {} 100 0 0 100 0 1000\n",
+                i + 1,
+                z.x,
+                z.y,
+                z.theta
+            );
         }
         s += "EDGE_SE2 15 0 1 0 1.5707963267948966 100 0 0 100 0 1000\n";
         s
@@ -498,7 +512,10 @@ mod tests {
             assert_eq!(r["nodes"], 16);
             assert_eq!(r["edges"], 16);
             assert_eq!(r["converged"], true);
-            let (c0, c1) = (r["initial_chi2"].as_f64().unwrap(), r["final_chi2"].as_f64().unwrap());
+            let (c0, c1) = (
+                r["initial_chi2"].as_f64().unwrap(),
+                r["final_chi2"].as_f64().unwrap(),
+            );
             assert!(c1 < c0 && c1 > 0.0, "{c0} -> {c1}");
             assert!(r["time_ms"].as_f64().unwrap() >= 0.0);
             assert!(r["iterations"].as_u64().unwrap() >= 1);
@@ -511,8 +528,8 @@ mod tests {
 
     #[test]
     fn missing_input_is_an_error_not_a_panic() {
-        let cli =
-            crate::cli::Cli::try_parse_from(["cloi", "optimize", "/nonexistent/graph.g2o"]).unwrap();
+        let cli = crate::cli::Cli::try_parse_from(["cloi", "optimize", "/nonexistent/graph.g2o"])
+            .unwrap();
         let err = crate::cli::run(cli, &mut Vec::new()).unwrap_err();
         assert!(format!("{err:#}").contains("/nonexistent/graph.g2o"));
     }

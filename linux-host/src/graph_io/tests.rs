@@ -32,7 +32,17 @@ fn g2o_quirks_are_handled() {
     assert_eq!(g.edges[2].measurement.theta, 0.0);
     // Information order: I11 I12 I13 I22 I23 I33, symmetric.
     let m = g.edges[1].information;
-    assert_eq!((m[(0, 1)], m[(1, 0)], m[(0, 2)], m[(1, 1)], m[(1, 2)], m[(2, 2)]), (1.0, 1.0, 2.0, 90.0, 3.0, 300.0));
+    assert_eq!(
+        (
+            m[(0, 1)],
+            m[(1, 0)],
+            m[(0, 2)],
+            m[(1, 1)],
+            m[(1, 2)],
+            m[(2, 2)]
+        ),
+        (1.0, 1.0, 2.0, 90.0, 3.0, 300.0)
+    );
     assert_eq!(g.edges[0].kind(), EdgeKind::Odometry);
     assert_eq!(g.edges[2].kind(), EdgeKind::Loop);
 }
@@ -57,7 +67,17 @@ fn toro_round_trip_and_information_order() {
     let text = "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\nEDGE2 0 1 1 0 0 100 1 90 300 2 3\n";
     let g = read_toro(text, Path::new("t.graph")).unwrap();
     let m = g.edges[0].information;
-    assert_eq!((m[(0, 0)], m[(0, 1)], m[(1, 1)], m[(2, 2)], m[(0, 2)], m[(1, 2)]), (100.0, 1.0, 90.0, 300.0, 2.0, 3.0));
+    assert_eq!(
+        (
+            m[(0, 0)],
+            m[(0, 1)],
+            m[(1, 1)],
+            m[(2, 2)],
+            m[(0, 2)],
+            m[(1, 2)]
+        ),
+        (100.0, 1.0, 90.0, 300.0, 2.0, 3.0)
+    );
     let back = read_toro(&write_toro(&g, &g.poses), Path::new("t.graph")).unwrap();
     assert_eq!(back.edges, g.edges);
     assert_eq!(back.poses, g.poses);
@@ -87,20 +107,41 @@ fn bad_input_names_file_and_line() {
     let cases = [
         ("VERTEX_SE2 0 0 0\n", ":1: missing theta"),
         ("VERTEX_SE2 0 0 0 0 9\n", ":1: unexpected extra value"),
-        ("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 0 1 1 1\n", ":2: vertex 0 already defined on line 1"),
-        ("VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 5 1 0 0 1 0 0 1 0 1\n", ":2: edge refers to vertex 5"),
+        (
+            "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 0 1 1 1\n",
+            ":2: vertex 0 already defined on line 1",
+        ),
+        (
+            "VERTEX_SE2 0 0 0 0\nEDGE_SE2 0 5 1 0 0 1 0 0 1 0 1\n",
+            ":2: edge refers to vertex 5",
+        ),
         ("VERTEX_SE2 0 0 nan 0\n", ":1: y is not finite"),
         ("VERTEX_SE2 0 0 abc 0\n", ":1: y is not a number"),
-        ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n", ":1: unsupported g2o record"),
-        ("\n\nEDGE_SE2 0 1 1 0 0 1 0 0 -1 0 1\n", ":3: information matrix is not positive definite"),
-        ("EDGE_SE2 0 0 1 0 0 1 0 0 1 0 1\n", ":1: edge joins vertex 0 to itself"),
-        ("EDGE_SE2 x 1 1 0 0 1 0 0 1 0 1\n", ":1: first vertex id is not an integer"),
+        (
+            "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n",
+            ":1: unsupported g2o record",
+        ),
+        (
+            "\n\nEDGE_SE2 0 1 1 0 0 1 0 0 -1 0 1\n",
+            ":3: information matrix is not positive definite",
+        ),
+        (
+            "EDGE_SE2 0 0 1 0 0 1 0 0 1 0 1\n",
+            ":1: edge joins vertex 0 to itself",
+        ),
+        (
+            "EDGE_SE2 x 1 1 0 0 1 0 0 1 0 1\n",
+            ":1: first vertex id is not an integer",
+        ),
         ("FIX\n", ":1: FIX without a vertex id"),
     ];
     for (text, want) in cases {
         let err = read_g2o(text, Path::new("bad.g2o")).unwrap_err();
         let msg = format!("{err:#}");
-        assert!(msg.starts_with("bad.g2o:") && msg.contains(want), "{text:?}: {msg}");
+        assert!(
+            msg.starts_with("bad.g2o:") && msg.contains(want),
+            "{text:?}: {msg}"
+        );
     }
     let err = read_graph(Path::new("/nonexistent/x.g2o"), None).unwrap_err();
     assert!(format!("{err:#}").contains("/nonexistent/x.g2o"));
@@ -115,7 +156,11 @@ fn ground_truth_reads_both_forms_and_aligns() {
     let gt = read_ground_truth(&plain).unwrap();
     assert_eq!(gt.len(), 3);
     let g2o = dir.join("gt.g2o");
-    std::fs::write(&g2o, "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\n").unwrap();
+    std::fs::write(
+        &g2o,
+        "VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\n",
+    )
+    .unwrap();
     assert_eq!(read_ground_truth(&g2o).unwrap(), gt);
     std::fs::write(&plain, "0 0 0\n1 0\n").unwrap();
     assert!(format!("{:#}", read_ground_truth(&plain).unwrap_err()).contains("gt.dat:2"));
