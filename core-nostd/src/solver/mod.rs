@@ -5,9 +5,9 @@
 //! Per solve:
 //! 1. **Analyse** (only when the graph's structure changed since the last solve with this
 //!    workspace): number the free nodes, order them by minimum degree, record the factor's
-//!    block pattern and where every edge's block goes ([`ordering`]).
+//!    block pattern and where every edge's block goes (module `ordering`).
 //! 2. **Iterate**: pick robust weights and max-mixture components at the current estimate,
-//!    assemble `H dx = -g` directly into the factor's storage, factorize ([`cholesky`]), solve,
+//!    assemble `H dx = -g` directly into the factor's storage, factorize (module `cholesky`), solve,
 //!    update `x += dx` (angles wrapped).
 //!
 //! Gauge: the first node is held fixed unless the graph has a prior edge; nodes flagged
@@ -79,7 +79,7 @@ pub struct SolverOptions {
     /// Most Gauss-Newton iterations of each stage but the last, and of the gated warm start.
     pub stage_iterations: u32,
     /// Warm start of max-mixture loops: when positive, each max-mixture loop closure is first
-    /// tested against the odometry chain's prediction and its covariance ([`gate`]); the
+    /// tested against the odometry chain's prediction and its covariance (module `gate`); the
     /// solver converges with the loops that pass (chi2 below this value, 3 degrees of
     /// freedom) before every component is chosen by its residual. 0 disables it.
     pub gate_chi2: f64,
@@ -582,7 +582,7 @@ fn gauss_newton(
         // Backtracking: an increase (a bad linearization far from the solution, or a
         // max-mixture switching components) halves the step, at most `MAX_HALVINGS` times.
         let mut halvings = 0;
-        while !(new_cost <= cost)
+        while (new_cost.is_nan() || new_cost > cost)
             && halvings < MAX_HALVINGS
             && cost.is_finite()
             && (!mixtures || warm == Warm::Dcs)
