@@ -9,6 +9,8 @@
 //! scale with the capacities, so the budget table is meaningful from the start.
 
 use crate::geom::{Cov3, Se2};
+use crate::graph::GraphStorage;
+use crate::solver::SolverWorkspace;
 use crate::storage::Slot;
 
 /// The capacities and budget of one deployment class.
@@ -28,6 +30,8 @@ pub struct ProfileSpec {
     pub max_submaps: usize,
     /// Cells per submap (side x side).
     pub submap_cells: usize,
+    /// Off-diagonal 3x3 blocks of the pose-graph solver's Cholesky factor (fill included).
+    pub max_factor_blocks: usize,
 }
 
 const MIB: usize = 1024 * 1024;
@@ -41,6 +45,7 @@ pub const HOME: ProfileSpec = ProfileSpec {
     max_edges: 12288,
     max_submaps: 96,
     submap_cells: 82 * 82,
+    max_factor_blocks: 16 * 4096,
 };
 
 /// A 3,000 m^2 office floor: 10 m submaps at 5 cm.
@@ -52,6 +57,7 @@ pub const OFFICE: ProfileSpec = ProfileSpec {
     max_edges: 49152,
     max_submaps: 160,
     submap_cells: 200 * 200,
+    max_factor_blocks: 16 * 16384,
 };
 
 /// A 60,000 m^2 airport hall mapped by a guide robot: 10 m submaps at 10 cm.
@@ -63,6 +69,7 @@ pub const AIRPORT: ProfileSpec = ProfileSpec {
     max_edges: 393216,
     max_submaps: 1600,
     submap_cells: 100 * 100,
+    max_factor_blocks: 5 * 131072 / 2,
 };
 
 /// Every built-in profile.
@@ -98,6 +105,7 @@ pub struct MapperResources<
     const EDGES: usize,
     const SUBMAPS: usize,
     const CELLS: usize,
+    const FACTOR: usize,
 > {
     /// Node pool storage.
     pub nodes: [Slot<NodeRecord>; NODES],
@@ -105,10 +113,19 @@ pub struct MapperResources<
     pub edges: [Slot<EdgeRecord>; EDGES],
     /// Occupancy cells of every submap (log-odds in compact integers).
     pub grid_cells: [[i8; CELLS]; SUBMAPS],
+    /// The pose graph that the back-end optimizes.
+    pub pose_graph: GraphStorage<NODES, EDGES>,
+    /// The pose-graph solver's workspace (ordering, factor, iteration state).
+    pub solver: SolverWorkspace<NODES, EDGES, FACTOR>,
 }
 
-impl<const NODES: usize, const EDGES: usize, const SUBMAPS: usize, const CELLS: usize>
-    MapperResources<NODES, EDGES, SUBMAPS, CELLS>
+impl<
+        const NODES: usize,
+        const EDGES: usize,
+        const SUBMAPS: usize,
+        const CELLS: usize,
+        const FACTOR: usize,
+    > MapperResources<NODES, EDGES, SUBMAPS, CELLS, FACTOR>
 {
     /// Empty resources, usable as a `static` initialiser.
     pub const fn new() -> Self {
@@ -116,12 +133,19 @@ impl<const NODES: usize, const EDGES: usize, const SUBMAPS: usize, const CELLS: 
             nodes: Slot::array::<NODES>(),
             edges: Slot::array::<EDGES>(),
             grid_cells: [[0; CELLS]; SUBMAPS],
+            pose_graph: GraphStorage::new(),
+            solver: SolverWorkspace::new(),
         }
     }
 }
 
-impl<const NODES: usize, const EDGES: usize, const SUBMAPS: usize, const CELLS: usize> Default
-    for MapperResources<NODES, EDGES, SUBMAPS, CELLS>
+impl<
+        const NODES: usize,
+        const EDGES: usize,
+        const SUBMAPS: usize,
+        const CELLS: usize,
+        const FACTOR: usize,
+    > Default for MapperResources<NODES, EDGES, SUBMAPS, CELLS, FACTOR>
 {
     fn default() -> Self {
         Self::new()
@@ -134,6 +158,7 @@ pub type HomeResources = MapperResources<
     { HOME.max_edges },
     { HOME.max_submaps },
     { HOME.submap_cells },
+    { HOME.max_factor_blocks },
 >;
 /// Resources of the `office` profile.
 pub type OfficeResources = MapperResources<
@@ -141,6 +166,7 @@ pub type OfficeResources = MapperResources<
     { OFFICE.max_edges },
     { OFFICE.max_submaps },
     { OFFICE.submap_cells },
+    { OFFICE.max_factor_blocks },
 >;
 /// Resources of the `airport` profile.
 pub type AirportResources = MapperResources<
@@ -148,4 +174,5 @@ pub type AirportResources = MapperResources<
     { AIRPORT.max_edges },
     { AIRPORT.max_submaps },
     { AIRPORT.submap_cells },
+    { AIRPORT.max_factor_blocks },
 >;

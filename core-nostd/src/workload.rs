@@ -19,15 +19,19 @@ pub enum Section {
     ExpLog,
     /// 5,000 squared Mahalanobis distances.
     Mahalanobis,
+    /// Gauss-Newton solve of a 24-node pose graph with loop closures (ordering, sparse
+    /// factorizations, iterations), all storage on the stack (about 18 KiB).
+    PoseGraphSolve,
 }
 
 impl Section {
     /// Every section, in the order the firmware runs them.
-    pub const ALL: [Section; 4] = [
+    pub const ALL: [Section; 5] = [
         Section::Se2Chain,
         Section::CovarianceCompound,
         Section::ExpLog,
         Section::Mahalanobis,
+        Section::PoseGraphSolve,
     ];
 
     /// Stable name used in the firmware's output.
@@ -37,6 +41,7 @@ impl Section {
             Section::CovarianceCompound => "cov_compound",
             Section::ExpLog => "exp_log",
             Section::Mahalanobis => "mahalanobis",
+            Section::PoseGraphSolve => "pose_graph_solve",
         }
     }
 
@@ -47,6 +52,7 @@ impl Section {
             Section::CovarianceCompound => covariance_compound(5_000),
             Section::ExpLog => exp_log(5_000),
             Section::Mahalanobis => mahalanobis(5_000),
+            Section::PoseGraphSolve => pose_graph_solve(),
         }
     }
 }
@@ -110,6 +116,92 @@ fn mahalanobis(n: u32) -> f64 {
     acc
 }
 
+/// Nodes of the workload's pose graph.
+const PG_NODES: usize = 24;
+/// Edges: the odometry chain, the closing edge and four chords.
+const PG_EDGES: usize = 28;
+/// Factor blocks (the minimum-degree factor of this graph has 44).
+const PG_FACTOR: usize = 64;
+
+/// A square loop of 24 poses (6 per side) with noisy odometry, the closing loop and three
+/// chords across the square; the noise is a fixed formula. Returns a checksum over the
+/// optimized poses, the final chi2 and the iteration count (or a negative code on failure).
+fn pose_graph_solve() -> f64 {
+    use crate::graph::{EdgeKind, GraphStorage, PoseEdge};
+    use crate::solver::{solve, SolverOptions, SolverWorkspace};
+    use crate::storage::NodeId;
+
+    let truth = |i: usize| -> Se2 {
+        let side = (i / 6) as f64;
+        let k = (i % 6) as f64;
+        let heading = side * core::f64::consts::FRAC_PI_2;
+        let (c, s) = (libm::cos(heading), libm::sin(heading));
+        let (cx, cy) = [(0.0, 0.0), (6.0, 0.0), (6.0, 6.0), (0.0, 6.0)][(i / 6) % 4];
+        Se2::new(cx + c * k, cy + s * k, heading)
+    };
+    let noise = |i: usize| -> Se2 {
+        let t = i as f64;
+        Se2::new(
+            0.02 * libm::sin(1.7 * t),
+            0.015 * libm::cos(2.3 * t),
+            0.01 * libm::sin(0.9 * t + 0.4),
+        )
+    };
+    let info = Matrix3::new(100.0, 0.0, 0.0, 0.0, 100.0, 0.0, 0.0, 0.0, 400.0);
+    let mut storage = GraphStorage::<PG_NODES, PG_EDGES>::new();
+    let mut graph = storage.graph();
+    let mut pose = Se2::IDENTITY;
+    for i in 0..PG_NODES {
+        if graph.add_node(pose).is_err() {
+            return -1.0;
+        }
+        let z = truth(i)
+            .between(&truth((i + 1) % PG_NODES))
+            .compose(&noise(i));
+        pose = pose.compose(&z);
+    }
+    let mut add = |a: usize, b: usize, kind: EdgeKind, n: usize| {
+        let z = truth(a).between(&truth(b)).compose(&noise(n));
+        graph
+            .add_edge(PoseEdge::new(
+                NodeId(a as u32),
+                NodeId(b as u32),
+                z,
+                info,
+                kind,
+            ))
+            .is_ok()
+    };
+    let mut ok = true;
+    for i in 0..PG_NODES {
+        let kind = if i + 1 == PG_NODES {
+            EdgeKind::Loop
+        } else {
+            EdgeKind::Odometry
+        };
+        ok &= add(i, (i + 1) % PG_NODES, kind, i);
+    }
+    for (k, (a, b)) in [(3, 15), (9, 21), (1, 13), (2, 20)].into_iter().enumerate() {
+        ok &= add(a, b, EdgeKind::Loop, 100 + k);
+    }
+    if !ok {
+        return -2.0;
+    }
+    let mut ws = SolverWorkspace::<PG_NODES, PG_EDGES, PG_FACTOR>::new();
+    let options = SolverOptions::default();
+    match solve(&mut graph, &mut ws.buffers(), &options) {
+        Ok(report) => {
+            let mut acc = report.final_chi2 + report.iterations as f64;
+            for (i, n) in graph.nodes().iter().enumerate() {
+                let w = 1.0 + i as f64 * 0.01;
+                acc += w * (n.pose.x + 2.0 * n.pose.y + 3.0 * n.pose.theta);
+            }
+            acc
+        }
+        Err(_) => -3.0,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -121,6 +213,12 @@ mod tests {
             assert!(a.is_finite(), "{}", s.name());
             assert_eq!(a.to_bits(), s.run().to_bits());
         }
+    }
+
+    #[test]
+    fn pose_graph_section_solves() {
+        let v = Section::PoseGraphSolve.run();
+        assert!(v > 0.0, "solve failed with code {v}");
     }
 
     #[test]

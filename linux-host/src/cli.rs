@@ -24,6 +24,8 @@ pub enum Command {
     /// Prune a pose graph to about one node per grid cell (marginalization and Chow-Liu trees),
     /// optimize it, and report sizes and ARPS (the paper's Table III).
     Prune(crate::prune::PruneArgs),
+    /// Add seeded random false loop closures to a pose graph (robustness tests).
+    Corrupt(crate::corrupt::CorruptArgs),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -35,5 +37,6 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Budget(args) => cloi_budget::cli::run(&args, out),
         Command::Optimize(args) => crate::optimize::run(&args, out),
         Command::Prune(args) => crate::prune::run(&args, out),
+        Command::Corrupt(args) => crate::corrupt::run(&args, out),
     }
 }

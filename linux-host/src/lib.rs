@@ -4,6 +4,7 @@
 //! formats, the simulator and evaluation. The algorithms live in [`cloi_core`].
 
 pub mod cli;
+pub mod corrupt;
 pub mod dataset;
 pub mod graph_io;
 pub mod optimize;

@@ -81,6 +81,20 @@ pub struct OptimizeArgs {
     /// Convergence threshold on the relative cost decrease of one iteration.
     #[arg(long, default_value_t = 1e-8)]
     pub rel_tol: f64,
+    /// Gauss-Newton stages over the node order (loops among the first s/S of the nodes act in
+    /// stage s).
+    #[arg(long, default_value_t = 1)]
+    pub stages: u32,
+    /// Max-mixture warm start: chi2 gate (3 degrees of freedom) of each loop against the
+    /// odometry chain's prediction and covariance; 0 disables it.
+    #[arg(long, default_value_t = 16.27)]
+    pub gate_chi2: f64,
+    /// Most iterations per stage (all stages but the last).
+    #[arg(long, default_value_t = 10)]
+    pub stage_iters: u32,
+    /// Skip the linear (LAGO-style) re-initialisation of headings and positions.
+    #[arg(long)]
+    pub no_linear_init: bool,
     /// Write the optimized graph here (g2o).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -127,6 +141,8 @@ pub struct OptimizeReport {
     pub factor_blocks: usize,
     /// Loop closures whose max-mixture picked the null hypothesis at the end.
     pub rejected_loops: Option<usize>,
+    /// Max-mixture loop closures that passed the odometry-chain gate of the warm start.
+    pub gated_loops: usize,
     /// Position RMSE against the ground truth after aligning the first pose, metres.
     pub rmse_m: Option<f64>,
 }
@@ -143,6 +159,7 @@ pub struct HostWorkspace {
     saved: Vec<Se2>,
     edge_slot: Vec<u32>,
     edge_trig: Vec<[f64; 2]>,
+    edge_flags: Vec<u8>,
     rows: Vec<u32>,
     values: Vec<Block>,
     adj_node: Vec<u32>,
@@ -168,6 +185,7 @@ impl HostWorkspace {
         self.saved.resize(nodes, Se2::IDENTITY);
         self.edge_slot.resize(edges, 0);
         self.edge_trig.resize(edges, [0.0; 2]);
+        self.edge_flags.resize(edges, 0);
         self.rows.resize(factor, 0);
         self.values.resize(factor, [0.0; 9]);
         self.adj_node.resize(2 * factor, 0);
@@ -190,6 +208,7 @@ impl HostWorkspace {
             scratch: [d, e, f, g, h, i],
             edge_slot: &mut self.edge_slot,
             edge_trig: &mut self.edge_trig,
+            edge_flags: &mut self.edge_flags,
             rows: &mut self.rows,
             values: &mut self.values,
             adj_node: &mut self.adj_node,
@@ -297,6 +316,10 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
         },
         max_iterations: args.max_iters,
         relative_tolerance: args.rel_tol,
+        linear_init: !args.no_linear_init,
+        stages: args.stages,
+        gate_chi2: args.gate_chi2,
+        stage_iterations: args.stage_iters,
         ..SolverOptions::default()
     };
     let t0 = Instant::now();
@@ -351,6 +374,7 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
         error: error.map(|e| e.to_string()),
         factor_blocks: rep.factor_blocks,
         rejected_loops,
+        gated_loops: rep.gated_loops,
         rmse_m,
     };
     if let Some(e) = error {
@@ -411,4 +435,152 @@ fn display_name(p: &Path) -> String {
     p.file_name()
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| p.display().to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    /// A small square loop with noisy odometry and one loop closure, as g2o text.
+    fn square_g2o() -> String {
+        let mut s = String::new();
+        let mut pose = Se2::IDENTITY;
+        let step = |i: usize| {
+            let turn = if i % 4 == 3 {
+                std::f64::consts::FRAC_PI_2
+            } else {
+                0.0
+            };
+            Se2::new(
+                1.0 + 0.01 * (i as f64).sin(),
+                0.02 * (i as f64).cos(),
+                turn + 0.01,
+            )
+        };
+        for i in 0..16 {
+            s += &format!("VERTEX_SE2 {i} {} {} {}\n", pose.x, pose.y, pose.theta);
+            pose = pose.compose(&step(i));
+        }
+        for i in 0..15 {
+            let z = step(i);
+            s += &format!(
+                "EDGE_SE2 {i} {} {} {} {} 100 0 0 100 0 1000\n",
+                i + 1,
+                z.x,
+                z.y,
+                z.theta
+            );
+        }
+        s += "EDGE_SE2 15 0 1 0 1.5707963267948966 100 0 0 100 0 1000\n";
+        s
+    }
+
+    fn temp(name: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("cloi-opt-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join(name)
+    }
+
+    #[test]
+    fn optimize_writes_graph_and_report() {
+        let input = temp("square.g2o");
+        std::fs::write(&input, square_g2o()).unwrap();
+        let out = temp("square_opt.g2o");
+        let report = temp("square.json");
+        for solver in ["gn", "lm"] {
+            let cli = crate::cli::Cli::try_parse_from([
+                "cloi",
+                "optimize",
+                input.to_str().unwrap(),
+                "--solver",
+                solver,
+                "--init",
+                "odometry",
+                "--out",
+                out.to_str().unwrap(),
+                "--report",
+                report.to_str().unwrap(),
+                "--ground-truth",
+                input.to_str().unwrap(),
+            ])
+            .unwrap();
+            let mut text = Vec::new();
+            crate::cli::run(cli, &mut text).unwrap();
+            let r: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap();
+            assert_eq!(r["nodes"], 16);
+            assert_eq!(r["edges"], 16);
+            assert_eq!(r["converged"], true);
+            let (c0, c1) = (
+                r["initial_chi2"].as_f64().unwrap(),
+                r["final_chi2"].as_f64().unwrap(),
+            );
+            assert!(c1 < c0 && c1 > 0.0, "{c0} -> {c1}");
+            assert!(r["time_ms"].as_f64().unwrap() >= 0.0);
+            assert!(r["iterations"].as_u64().unwrap() >= 1);
+            assert!(r["rmse_m"].as_f64().unwrap() >= 0.0);
+            // The optimized graph reads back with the same edges and a lower chi2.
+            let back = graph_io::read_graph(&out, None).unwrap();
+            assert_eq!(back.edges.len(), 16);
+        }
+    }
+
+    #[test]
+    fn missing_input_is_an_error_not_a_panic() {
+        let cli = crate::cli::Cli::try_parse_from(["cloi", "optimize", "/nonexistent/graph.g2o"])
+            .unwrap();
+        let err = crate::cli::run(cli, &mut Vec::new()).unwrap_err();
+        assert!(format!("{err:#}").contains("/nonexistent/graph.g2o"));
+    }
+
+    #[test]
+    fn corrupt_is_seeded_and_maxmix_rejects_its_loops() {
+        let input = temp("sq.g2o");
+        std::fs::write(&input, square_g2o()).unwrap();
+        let a = temp("sq_a.g2o");
+        let b = temp("sq_b.g2o");
+        for out in [&a, &b] {
+            let cli = crate::cli::Cli::try_parse_from([
+                "cloi",
+                "corrupt",
+                input.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+                "--outliers",
+                "5",
+                "--seed",
+                "3",
+            ])
+            .unwrap();
+            crate::cli::run(cli, &mut Vec::new()).unwrap();
+        }
+        let ta = std::fs::read_to_string(&a).unwrap();
+        assert_eq!(ta, std::fs::read_to_string(&b).unwrap());
+        assert_eq!(ta.lines().filter(|l| l.starts_with("EDGE_SE2")).count(), 21);
+        let args = |robust: &str| {
+            let cli = crate::cli::Cli::try_parse_from([
+                "cloi",
+                "optimize",
+                a.to_str().unwrap(),
+                "--robust",
+                robust,
+            ])
+            .unwrap();
+            match cli.command {
+                crate::cli::Command::Optimize(o) => o,
+                _ => unreachable!(),
+            }
+        };
+        let clean = optimize_file(&OptimizeArgs {
+            input: input.clone(),
+            ..args("none")
+        })
+        .unwrap();
+        let mm = optimize_file(&args("maxmix")).unwrap();
+        assert_eq!(mm.report.rejected_loops, Some(5));
+        for (p, q) in mm.poses.iter().zip(&clean.poses) {
+            assert!((p.x - q.x).abs() < 1e-3 && (p.y - q.y).abs() < 1e-3);
+        }
+    }
 }

@@ -2,10 +2,12 @@
 
 use core::mem::size_of;
 
+use cloi_core::graph::{PoseEdge, PoseNode};
 use cloi_core::profile::{
     AirportResources, EdgeRecord, HomeResources, NodeRecord, OfficeResources, ProfileSpec, AIRPORT,
     HOME, OFFICE,
 };
+use cloi_core::solver::SolverWorkspace;
 use cloi_core::storage::Slot;
 
 // The proof: the build fails if a profile's resources exceed its budget on the target being
@@ -63,7 +65,7 @@ fn row(name: &'static str, count: usize, element_bytes: usize) -> PoolRow {
     }
 }
 
-fn footprint_of(spec: ProfileSpec, total_bytes: usize) -> ProfileFootprint {
+fn footprint_of(spec: ProfileSpec, total_bytes: usize, solver_bytes: usize) -> ProfileFootprint {
     ProfileFootprint {
         spec,
         total_bytes,
@@ -75,6 +77,9 @@ fn footprint_of(spec: ProfileSpec, total_bytes: usize) -> ProfileFootprint {
                 spec.max_submaps * spec.submap_cells,
                 size_of::<i8>(),
             ),
+            row("graph nodes", spec.max_nodes, size_of::<PoseNode>()),
+            row("graph edges", spec.max_edges, size_of::<PoseEdge>()),
+            row("solver", 1, solver_bytes),
         ],
     }
 }
@@ -82,9 +87,35 @@ fn footprint_of(spec: ProfileSpec, total_bytes: usize) -> ProfileFootprint {
 /// The footprint of every built-in profile, measured with `size_of` on this target.
 pub fn all_profiles() -> Vec<ProfileFootprint> {
     vec![
-        footprint_of(HOME, size_of::<HomeResources>()),
-        footprint_of(OFFICE, size_of::<OfficeResources>()),
-        footprint_of(AIRPORT, size_of::<AirportResources>()),
+        footprint_of(
+            HOME,
+            size_of::<HomeResources>(),
+            size_of::<
+                SolverWorkspace<{ HOME.max_nodes }, { HOME.max_edges }, { HOME.max_factor_blocks }>,
+            >(),
+        ),
+        footprint_of(
+            OFFICE,
+            size_of::<OfficeResources>(),
+            size_of::<
+                SolverWorkspace<
+                    { OFFICE.max_nodes },
+                    { OFFICE.max_edges },
+                    { OFFICE.max_factor_blocks },
+                >,
+            >(),
+        ),
+        footprint_of(
+            AIRPORT,
+            size_of::<AirportResources>(),
+            size_of::<
+                SolverWorkspace<
+                    { AIRPORT.max_nodes },
+                    { AIRPORT.max_edges },
+                    { AIRPORT.max_factor_blocks },
+                >,
+            >(),
+        ),
     ]
 }
 

@@ -59,20 +59,20 @@ pub(crate) fn mul_tv(m: &Block, v: &Vec3) -> Vec3 {
 #[inline]
 fn chol_inverse(a: &Block) -> Option<Block> {
     let d0 = a[0];
-    if !(d0 > 0.0) {
+    if d0.is_nan() || d0 <= 0.0 {
         return None;
     }
     let l00 = libm::sqrt(d0);
     let l10 = a[3] / l00;
     let l20 = a[6] / l00;
     let d1 = a[4] - l10 * l10;
-    if !(d1 > 0.0) {
+    if d1.is_nan() || d1 <= 0.0 {
         return None;
     }
     let l11 = libm::sqrt(d1);
     let l21 = (a[7] - l20 * l10) / l11;
     let d2 = a[8] - l20 * l20 - l21 * l21;
-    if !(d2 > 0.0) || !d2.is_finite() {
+    if !d2.is_finite() || d2 <= 0.0 {
         return None;
     }
     let l22 = libm::sqrt(d2);
@@ -90,6 +90,7 @@ fn chol_inverse(a: &Block) -> Option<Block> {
 /// `diag[j]` holds `L_jj^-1`.
 ///
 /// Returns `Err(j)` with the first column whose pivot block is not positive definite.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn factorize(
     n: usize,
     col_end: &[u32],

@@ -95,15 +95,38 @@ fn info_block(edge: &PoseEdge) -> Block {
     ]
 }
 
-/// Robust cost and plain chi2 of the whole graph.
-pub(crate) fn evaluate(nodes: &[PoseNode], edges: &[PoseEdge], trig: &[[f64; 2]]) -> (f64, f64) {
+/// Whether `edge` takes part while only nodes below `limit` may close loops.
+#[inline(always)]
+pub(crate) fn within(edge: &PoseEdge, limit: usize) -> bool {
+    edge.kind != EdgeKind::Loop || (edge.from.0 as usize) < limit && (edge.to.0 as usize) < limit
+}
+
+/// Robust cost and plain chi2 of the edges within `limit` (see [`within`]).
+pub(crate) fn evaluate(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    trig: &[[f64; 2]],
+    limit: usize,
+    warm: Warm,
+    flags: &[u8],
+) -> (f64, f64) {
     let mut cost = 0.0;
     let mut chi2 = 0.0;
-    for (edge, t) in edges.iter().zip(trig) {
+    for (k, (edge, t)) in edges.iter().zip(trig).enumerate() {
+        if !within(edge, limit) {
+            continue;
+        }
+        if warm != Warm::Off
+            && flags
+                .get(k)
+                .is_some_and(|f| f & super::gate::GATE_PASSED == 0)
+        {
+            continue;
+        }
         if let Some(e) = edge_residual(nodes, edge, t) {
             let c = quad(&info_block(edge), &e);
             chi2 += c;
-            cost += edge.robust.weigh(c).1;
+            cost += weigh(edge, c, warm, flags.get(k).copied().unwrap_or(0)).1;
         }
     }
     (cost, chi2)
@@ -112,6 +135,9 @@ pub(crate) fn evaluate(nodes: &[PoseNode], edges: &[PoseEdge], trig: &[[f64; 2]]
 /// The system being assembled: slices of the solver's workspace.
 pub(crate) struct System<'s> {
     pub node_var: &'s [u32],
+    pub flags: &'s [u8],
+    /// How max-mixture edges are weighted.
+    pub warm: Warm,
     pub edge_slot: &'s [u32],
     pub trig: &'s [[f64; 2]],
     pub diag: &'s mut [Block],
@@ -142,6 +168,19 @@ fn sub_v(acc: &mut Vec3, v: &Vec3) {
     acc[2] -= v[2];
 }
 
+/// Which unknowns an assembly linearizes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Stage {
+    /// Positions and headings (the Gauss-Newton system).
+    Full,
+    /// Headings only, from the angle residuals alone: with the angle differences taken at the
+    /// current estimate, this is linear, and one solve gives every heading consistent with
+    /// all loops at once (the first step of a LAGO-style initialisation).
+    Headings,
+    /// Positions only, headings held: again linear, one solve places every position.
+    Positions,
+}
+
 /// Assembles `H` and `-g` at the current poses (with the robust weights of this estimate) and
 /// returns the robust cost and the plain chi2 there.
 pub(crate) fn assemble(
@@ -149,6 +188,7 @@ pub(crate) fn assemble(
     edges: &[PoseEdge],
     vars: usize,
     nnz: usize,
+    stage: Stage,
     s: &mut System<'_>,
 ) -> (f64, f64) {
     for d in s.diag.iter_mut().take(vars) {
@@ -169,19 +209,23 @@ pub(crate) fn assemble(
         ) else {
             continue;
         };
+        if s.flags[k] & 1 == 0 {
+            continue;
+        }
         let [cz, sz] = s.trig[k];
         let omega = info_block(edge);
         let pi = s.node_var[edge.from.0 as usize];
         if edge.kind == EdgeKind::Prior {
-            let e = prior_residual(&ni.pose, &edge.measurement, cz, sz);
+            let mut e = prior_residual(&ni.pose, &edge.measurement, cz, sz);
             let c = quad(&omega, &e);
-            let (w, rc) = edge.robust.weigh(c);
+            let (w, rc) = weigh(edge, c, s.warm, s.flags[k]);
             chi2 += c;
             cost += rc;
             if pi == NONE {
                 continue;
             }
-            let j: Block = [cz, sz, 0.0, -sz, cz, 0.0, 0.0, 0.0, 1.0];
+            let mut j: Block = [cz, sz, 0.0, -sz, cz, 0.0, 0.0, 0.0, 1.0];
+            restrict(stage, &mut e, &mut j, None);
             let wo = scale(&omega, w);
             let a = mul(&wo, &j);
             add(&mut s.diag[pi as usize], &mul_atb(&j, &a));
@@ -190,10 +234,10 @@ pub(crate) fn assemble(
         }
         let xi = &ni.pose;
         let (ci, si) = (libm::cos(xi.theta), libm::sin(xi.theta));
-        let (e, [ca, sa, gx, gy]) =
+        let (mut e, [ca, sa, gx, gy]) =
             relative_residual(xi, ci, si, &nj.pose, &edge.measurement, cz, sz);
         let c = quad(&omega, &e);
-        let (w, rc) = edge.robust.weigh(c);
+        let (w, rc) = weigh(edge, c, s.warm, s.flags[k]);
         chi2 += c;
         cost += rc;
         let pj = s.node_var[edge.to.0 as usize];
@@ -201,8 +245,9 @@ pub(crate) fn assemble(
             continue;
         }
         let wo = scale(&omega, w);
-        let jj: Block = [ca, sa, 0.0, -sa, ca, 0.0, 0.0, 0.0, 1.0];
-        let ji: Block = [-ca, -sa, gx, sa, -ca, gy, 0.0, 0.0, -1.0];
+        let mut jj: Block = [ca, sa, 0.0, -sa, ca, 0.0, 0.0, 0.0, 1.0];
+        let mut ji: Block = [-ca, -sa, gx, sa, -ca, gy, 0.0, 0.0, -1.0];
+        restrict(stage, &mut e, &mut jj, Some(&mut ji));
         let a = mul(&wo, &jj);
         if pj != NONE {
             add(&mut s.diag[pj as usize], &mul_atb(&jj, &a));
@@ -224,7 +269,75 @@ pub(crate) fn assemble(
             }
         }
     }
+    // Keep the unknowns a stage leaves out at zero with a unit diagonal.
+    let pad = match stage {
+        Stage::Full => None,
+        Stage::Headings => Some([0, 4]),
+        Stage::Positions => Some([8, 8]),
+    };
+    if let Some(idx) = pad {
+        for d in s.diag.iter_mut().take(vars) {
+            d[idx[0]] = 1.0;
+            d[idx[1]] = 1.0;
+        }
+    }
     (cost, chi2)
+}
+
+/// How max-mixture edges are weighted during the warm start of a robust solve.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Warm {
+    /// By their own model (no warm start).
+    Off,
+    /// Nominal component (the loops that passed the odometry gate).
+    Nominal,
+    /// Dynamic covariance scaling (Agarwal et al.): information scaled by `s^2` with
+    /// `s = min(1, 2 / (1 + chi2))`.
+    Dcs,
+}
+
+/// The robust weight and cost of an edge under `warm`.
+#[inline(always)]
+fn weigh(edge: &PoseEdge, chi2: f64, warm: Warm, flag: u8) -> (f64, f64) {
+    if warm == Warm::Off || !matches!(edge.robust, crate::graph::RobustKernel::MaxMixture { .. }) {
+        return edge.robust.weigh(chi2);
+    }
+    match warm {
+        Warm::Dcs => {
+            let s = (2.0 / (1.0 + chi2)).min(1.0);
+            (s * s, s * s * chi2)
+        }
+        _ => {
+            let w = super::gate::stored_weight(flag);
+            (w, w * chi2)
+        }
+    }
+}
+
+/// Restricts a residual and its Jacobians to the unknowns of `stage`.
+#[inline(always)]
+fn restrict(stage: Stage, e: &mut Vec3, jj: &mut Block, ji: Option<&mut Block>) {
+    match stage {
+        Stage::Full => {}
+        Stage::Headings => {
+            e[0] = 0.0;
+            e[1] = 0.0;
+            *jj = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, jj[8]];
+            if let Some(ji) = ji {
+                *ji = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, ji[8]];
+            }
+        }
+        Stage::Positions => {
+            jj[2] = 0.0;
+            jj[5] = 0.0;
+            jj[8] = 0.0;
+            if let Some(ji) = ji {
+                ji[2] = 0.0;
+                ji[5] = 0.0;
+                ji[8] = 0.0;
+            }
+        }
+    }
 }
 
 #[inline(always)]

@@ -5,9 +5,9 @@
 //! Per solve:
 //! 1. **Analyse** (only when the graph's structure changed since the last solve with this
 //!    workspace): number the free nodes, order them by minimum degree, record the factor's
-//!    block pattern and where every edge's block goes ([`ordering`]).
+//!    block pattern and where every edge's block goes (module `ordering`).
 //! 2. **Iterate**: pick robust weights and max-mixture components at the current estimate,
-//!    assemble `H dx = -g` directly into the factor's storage, factorize ([`cholesky`]), solve,
+//!    assemble `H dx = -g` directly into the factor's storage, factorize (module `cholesky`), solve,
 //!    update `x += dx` (angles wrapped).
 //!
 //! Gauge: the first node is held fixed unless the graph has a prior edge; nodes flagged
@@ -27,6 +27,7 @@
 //!   is [`SolveError::MaxIterations`]. The graph always holds the last (best, for LM) estimate.
 
 mod cholesky;
+mod gate;
 mod linearize;
 mod marginals;
 mod ordering;
@@ -38,8 +39,9 @@ pub use workspace::{AnalysisKey, Block, SolverBuffers, SolverWorkspace, Vec3};
 use core::fmt;
 
 use crate::geom::wrap_angle;
-use crate::graph::{PoseGraph, PoseNode};
+use crate::graph::{PoseEdge, PoseGraph, PoseNode, RobustKernel};
 use crate::storage::NodeId;
+use linearize::Warm;
 
 pub(crate) use linearize::{prior_residual, relative_residual};
 
@@ -66,6 +68,23 @@ pub struct SolverOptions {
     pub step_tolerance: f64,
     /// Gauss-Newton diverged when the cost exceeds this multiple of the initial cost.
     pub divergence_factor: f64,
+    /// Before iterating, re-estimate every heading, then every position, from one linear
+    /// solve each (a LAGO-style initialisation from the given guess). It removes the bad
+    /// basins that odometry guesses lead Gauss-Newton into, at the price of two extra
+    /// factorizations; the robust weights of the initial guess apply. Only without stages.
+    pub linear_init: bool,
+    /// Gauss-Newton in this many stages over the node order: stage `s` of `S` lets only loop
+    /// closures among the first `s/S` of the nodes act (later nodes follow their odometry), so
+    /// every new loop is judged against a map that is already consistent, as an online mapper
+    /// would. This is what lets max-mixtures start from a drifted odometry guess. 1: batch.
+    pub stages: u32,
+    /// Most Gauss-Newton iterations of each stage but the last, and of the gated warm start.
+    pub stage_iterations: u32,
+    /// Warm start of max-mixture loops: when positive, each max-mixture loop closure is first
+    /// tested against the odometry chain's prediction and its covariance (module `gate`); the
+    /// solver converges with the loops that pass (chi2 below this value, 3 degrees of
+    /// freedom) before every component is chosen by its residual. 0 disables it.
+    pub gate_chi2: f64,
 }
 
 impl Default for SolverOptions {
@@ -76,6 +95,10 @@ impl Default for SolverOptions {
             relative_tolerance: 1e-8,
             step_tolerance: 1e-10,
             divergence_factor: 1e6,
+            linear_init: true,
+            stages: 1,
+            stage_iterations: 10,
+            gate_chi2: 0.0,
         }
     }
 }
@@ -101,6 +124,8 @@ pub struct SolveReport {
     pub factor_blocks: usize,
     /// Whether this solve had to compute the ordering.
     pub analyzed: bool,
+    /// Max-mixture loop closures that passed the warm-start gate.
+    pub gated_loops: usize,
 }
 
 /// Why a solve failed.
@@ -232,35 +257,51 @@ pub fn solve(
         }
     }
 
-    // 1. Structure.
-    let gauge_first = ordering::gauge_fixes_first(edges);
-    let fp = ordering::fingerprint(nodes, edges, gauge_first);
-    let key = *ws.key;
-    if !(key.valid && key.nodes == nodes.len() && key.edges == edges.len() && key.fingerprint == fp)
-    {
-        ws.key.valid = false;
-        if let Err(e) = ordering::analyze(nodes, edges, gauge_first, ws) {
-            return fail(e, report);
-        }
-        ws.key.nodes = nodes.len();
-        ws.key.edges = edges.len();
-        ws.key.fingerprint = fp;
-        ws.key.valid = true;
-        report.analyzed = true;
+    if edges.len() > ws.edge_flags.len() {
+        return fail(
+            SolveError::Capacity {
+                what: "edges",
+                capacity: ws.edge_flags.len(),
+            },
+            report,
+        );
     }
-    let vars = ws.key.vars;
-    let nnz = ws.key.nnz;
-    report.variables = vars;
-    report.factor_blocks = nnz;
     for (t, e) in ws.edge_trig.iter_mut().zip(edges.iter()) {
         *t = [
             libm::cos(e.measurement.theta),
             libm::sin(e.measurement.theta),
         ];
     }
+    let n = nodes.len();
+    let stages = options.stages.max(1) as usize;
+    let first_limit = if stages > 1 { n / stages } else { n };
+
+    // 1. Structure.
+    let gauge_first = ordering::gauge_fixes_first(edges);
+    let gated = options.gate_chi2 > 0.0
+        && edges
+            .iter()
+            .any(|e| matches!(e.robust, RobustKernel::MaxMixture { .. }));
+    if gated {
+        report.gated_loops = gate::gate_loops(n, edges, ws, options.gate_chi2);
+    }
+    let warm0 = if gated { Warm::Nominal } else { Warm::Off };
+    if let Err(e) = refresh_structure(
+        nodes,
+        edges,
+        ws,
+        gauge_first,
+        first_limit,
+        warm0,
+        &mut report,
+    ) {
+        return fail(e, report);
+    }
+    let vars = ws.key.vars;
 
     // 2. Iterations.
-    let (cost0, chi0) = linearize::evaluate(nodes, edges, ws.edge_trig);
+    let (cost0, chi0) =
+        linearize::evaluate(nodes, edges, ws.edge_trig, n, Warm::Off, ws.edge_flags);
     report.initial_cost = cost0;
     report.initial_chi2 = chi0;
     report.final_cost = cost0;
@@ -272,14 +313,142 @@ pub fn solve(
         report.converged = true;
         return Ok(report);
     }
+    if options.linear_init && stages == 1 {
+        for stage in [linearize::Stage::Headings, linearize::Stage::Positions] {
+            if let Err(e) = linear_step(nodes, edges, ws, 0.0, false, stage, warm0) {
+                return fail(e, report);
+            }
+            apply_step(nodes, ws.var_node, ws.rhs, vars);
+        }
+        let (c, x) = linearize::evaluate(nodes, edges, ws.edge_trig, n, Warm::Off, ws.edge_flags);
+        report.final_cost = c;
+        report.final_chi2 = x;
+        if !c.is_finite() {
+            return fail(SolveError::Diverged, report);
+        }
+    }
+    if gated {
+        // Warm start: a few iterations with the gated loops on their nominal component (this
+        // closes large loops that odometry drift hides), then dynamic covariance scaling over
+        // every max-mixture loop until it settles; the free max-mixture phase follows.
+        for (warm, cap) in [
+            (Warm::Nominal, options.stage_iterations),
+            (Warm::Dcs, options.max_iterations),
+        ] {
+            if warm == Warm::Dcs {
+                gate::pass_all(edges, ws);
+            }
+            let r = gauss_newton(
+                nodes,
+                edges,
+                ws,
+                options,
+                &mut report,
+                n,
+                cap.min(options.max_iterations),
+                gauge_first,
+                warm,
+            );
+            match r {
+                Ok(()) | Err(SolveError::MaxIterations) => {}
+                Err(e) => return fail(e, report),
+            }
+        }
+    }
     let result = match options.method {
-        Method::GaussNewton => gauss_newton(nodes, edges, ws, options, &mut report),
+        Method::GaussNewton => {
+            let mut r = Ok(());
+            for stage in 1..=stages {
+                let limit = n * stage / stages;
+                let last = stage == stages;
+                let cap = if last {
+                    options.max_iterations
+                } else {
+                    options.stage_iterations
+                };
+                r = gauss_newton(
+                    nodes,
+                    edges,
+                    ws,
+                    options,
+                    &mut report,
+                    limit,
+                    cap,
+                    gauge_first,
+                    Warm::Off,
+                );
+                match r {
+                    Err(SolveError::MaxIterations) if !last => r = Ok(()),
+                    Err(_) => break,
+                    Ok(()) => {}
+                }
+            }
+            r
+        }
         Method::LevenbergMarquardt => levenberg_marquardt(nodes, edges, ws, options, &mut report),
     };
+    let (c, x) = linearize::evaluate(nodes, edges, ws.edge_trig, n, Warm::Off, ws.edge_flags);
+    report.final_cost = c;
+    report.final_chi2 = x;
+    report.factor_blocks = ws.key.nnz;
     match result {
         Ok(()) => Ok(report),
         Err(error) => fail(error, report),
     }
+}
+
+/// Most step halvings of one Gauss-Newton iteration.
+const MAX_HALVINGS: u32 = 8;
+/// Iterations after which a change of the active edge set no longer blocks convergence.
+const SETTLE_ITERATIONS: u32 = 8;
+
+/// A max-mixture edge whose chosen component scales its information below this takes no part
+/// in the linear system: its block would change `H` by less than this fraction, and leaving it
+/// out keeps the factor as sparse as the accepted loops alone make it.
+pub const INACTIVE_SCALE: f64 = 1e-3;
+
+/// Marks which edges take part in the linear system at the current estimate (loops within
+/// `limit`, max-mixture edges on a component of useful weight) and analyses the structure again
+/// when that set or the graph changed. Returns whether the set changed.
+fn refresh_structure(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    gauge_first: bool,
+    limit: usize,
+    warm: Warm,
+    report: &mut SolveReport,
+) -> Result<bool, SolveError> {
+    let mut changed = false;
+    for ((flag, e), t) in ws.edge_flags.iter_mut().zip(edges).zip(ws.edge_trig.iter()) {
+        let mut active = linearize::within(e, limit);
+        if warm != Warm::Off {
+            active &= *flag & gate::GATE_PASSED != 0;
+        } else if active && matches!(e.robust, RobustKernel::MaxMixture { .. }) {
+            let chi2 = linearize::edge_residual(nodes, e, t)
+                .map(|r| e.chi2_of(&r))
+                .unwrap_or(f64::INFINITY);
+            active = e.robust.weigh(chi2).0 >= INACTIVE_SCALE;
+        }
+        let f = active as u8;
+        changed |= *flag & 1 != f;
+        *flag = (*flag & !1) | f;
+    }
+    let fp = ordering::fingerprint(nodes, edges, ws.edge_flags, gauge_first);
+    let key = *ws.key;
+    if !(key.valid && key.nodes == nodes.len() && key.edges == edges.len() && key.fingerprint == fp)
+    {
+        ws.key.valid = false;
+        ordering::analyze(nodes, edges, gauge_first, ws)?;
+        ws.key.nodes = nodes.len();
+        ws.key.edges = edges.len();
+        ws.key.fingerprint = fp;
+        ws.key.valid = true;
+        report.analyzed = true;
+        report.variables = ws.key.vars;
+        report.factor_blocks = ws.key.nnz;
+    }
+    Ok(changed)
 }
 
 /// The lengths of the scratch arrays.
@@ -301,10 +470,12 @@ impl FromIterator<usize> for Lens {
 /// used.
 fn linear_step(
     nodes: &[PoseNode],
-    edges: &[crate::graph::PoseEdge],
+    edges: &[PoseEdge],
     ws: &mut SolverBuffers<'_>,
     lambda: f64,
     saved_rhs: bool,
+    stage: linearize::Stage,
+    warm: Warm,
 ) -> Result<(f64, f64, f64), SolveError> {
     let vars = ws.key.vars;
     let nnz = ws.key.nnz;
@@ -313,8 +484,11 @@ fn linear_step(
         edges,
         vars,
         nnz,
+        stage,
         &mut linearize::System {
             node_var: ws.node_var,
+            flags: ws.edge_flags,
+            warm,
             edge_slot: ws.edge_slot,
             trig: ws.edge_trig,
             diag: ws.diag,
@@ -373,30 +547,73 @@ fn apply_step(nodes: &mut [PoseNode], var_node: &[u32], dx: &[Vec3], vars: usize
     }
 }
 
+#[allow(clippy::too_many_arguments)]
 fn gauss_newton(
     nodes: &mut [PoseNode],
-    edges: &[crate::graph::PoseEdge],
+    edges: &[PoseEdge],
     ws: &mut SolverBuffers<'_>,
     options: &SolverOptions,
     report: &mut SolveReport,
+    limit: usize,
+    max_iterations: u32,
+    gauge_first: bool,
+    warm: Warm,
 ) -> Result<(), SolveError> {
     let vars = ws.key.vars;
-    let limit = options.divergence_factor * report.initial_cost.max(1.0);
-    let mut cost = report.initial_cost;
-    while report.iterations < options.max_iterations {
-        linear_step(nodes, edges, ws, 0.0, false)?;
+    let bound = options.divergence_factor * report.initial_cost.max(1.0);
+    // Max-mixture costs are not smooth: switching components makes a full step raise the cost
+    // on the way to a better basin, so steps are not halved there.
+    let mixtures = edges
+        .iter()
+        .any(|e| matches!(e.robust, RobustKernel::MaxMixture { .. }));
+    let (mut cost, _) = linearize::evaluate(nodes, edges, ws.edge_trig, limit, warm, ws.edge_flags);
+    let mut done = 0;
+    while done < max_iterations {
+        let changed = refresh_structure(nodes, edges, ws, gauge_first, limit, warm, report)?;
+        linear_step(nodes, edges, ws, 0.0, false, linearize::Stage::Full, warm)?;
         report.iterations += 1;
-        let largest = apply_step(nodes, ws.var_node, ws.rhs, vars);
-        let (new_cost, new_chi2) = linearize::evaluate(nodes, edges, ws.edge_trig);
+        done += 1;
+        let n = nodes.len();
+        ws.saved[..n]
+            .iter_mut()
+            .zip(nodes.iter())
+            .for_each(|(s, node)| *s = node.pose);
+        let mut largest = apply_step(nodes, ws.var_node, ws.rhs, vars);
+        let (mut new_cost, mut new_chi2) =
+            linearize::evaluate(nodes, edges, ws.edge_trig, limit, warm, ws.edge_flags);
+        // Backtracking: an increase (a bad linearization far from the solution, or a
+        // max-mixture switching components) halves the step, at most `MAX_HALVINGS` times.
+        let mut halvings = 0;
+        while (new_cost.is_nan() || new_cost > cost)
+            && halvings < MAX_HALVINGS
+            && cost.is_finite()
+            && (!mixtures || warm == Warm::Dcs)
+        {
+            halvings += 1;
+            for d in ws.rhs.iter_mut().take(vars) {
+                d[0] *= 0.5;
+                d[1] *= 0.5;
+                d[2] *= 0.5;
+            }
+            for (node, s) in nodes.iter_mut().zip(ws.saved.iter()) {
+                node.pose = *s;
+            }
+            largest = apply_step(nodes, ws.var_node, ws.rhs, vars);
+            (new_cost, new_chi2) =
+                linearize::evaluate(nodes, edges, ws.edge_trig, limit, warm, ws.edge_flags);
+        }
         report.final_cost = new_cost;
         report.final_chi2 = new_chi2;
-        if !new_cost.is_finite() || new_cost > limit {
+        if !new_cost.is_finite() || new_cost > bound {
             return Err(SolveError::Diverged);
         }
         let decrease = cost - new_cost;
         cost = new_cost;
-        if largest < options.step_tolerance
-            || (decrease >= 0.0 && decrease <= options.relative_tolerance * new_cost)
+        let settled = !changed || done > SETTLE_ITERATIONS;
+        if settled
+            && (largest < options.step_tolerance
+                || (decrease >= 0.0 && decrease <= options.relative_tolerance * new_cost)
+                || halvings == MAX_HALVINGS)
         {
             report.converged = true;
             return Ok(());
@@ -407,14 +624,14 @@ fn gauss_newton(
 
 fn levenberg_marquardt(
     nodes: &mut [PoseNode],
-    edges: &[crate::graph::PoseEdge],
+    edges: &[PoseEdge],
     ws: &mut SolverBuffers<'_>,
     options: &SolverOptions,
     report: &mut SolveReport,
 ) -> Result<(), SolveError> {
     let vars = ws.key.vars;
     let n = nodes.len();
-    let mut cost = report.initial_cost;
+    let mut cost = report.final_cost;
     let mut lambda: f64 = -1.0;
     let mut nu = 2.0;
     let mut rejections = 0u32;
@@ -423,7 +640,15 @@ fn levenberg_marquardt(
             .iter_mut()
             .zip(nodes.iter())
             .for_each(|(s, node)| *s = node.pose);
-        let step = linear_step(nodes, edges, ws, lambda, true);
+        let step = linear_step(
+            nodes,
+            edges,
+            ws,
+            lambda,
+            true,
+            linearize::Stage::Full,
+            Warm::Off,
+        );
         report.iterations += 1;
         match step {
             Ok((_, _, used)) => lambda = used,
@@ -447,7 +672,14 @@ fn levenberg_marquardt(
             }
         }
         let largest = apply_step(nodes, ws.var_node, ws.rhs, vars);
-        let (new_cost, new_chi2) = linearize::evaluate(nodes, edges, ws.edge_trig);
+        let (new_cost, new_chi2) = linearize::evaluate(
+            nodes,
+            edges,
+            ws.edge_trig,
+            nodes.len(),
+            Warm::Off,
+            ws.edge_flags,
+        );
         let rho = if predicted > 0.0 {
             (cost - new_cost) / predicted
         } else {

@@ -20,7 +20,12 @@ pub(crate) const NO_SLOT: u32 = u32::MAX;
 pub(crate) const TRANSPOSED: u32 = 1 << 31;
 
 /// A cheap hash of everything the analysis depends on.
-pub(crate) fn fingerprint(nodes: &[PoseNode], edges: &[PoseEdge], gauge_first: bool) -> u64 {
+pub(crate) fn fingerprint(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    flags: &[u8],
+    gauge_first: bool,
+) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     let mut mix = |v: u64| {
         h ^= v;
@@ -30,8 +35,9 @@ pub(crate) fn fingerprint(nodes: &[PoseNode], edges: &[PoseEdge], gauge_first: b
     for n in nodes {
         mix(n.fixed as u64);
     }
-    for e in edges {
+    for (e, &f) in edges.iter().zip(flags) {
         mix(((e.from.0 as u64) << 32) | e.to.0 as u64);
+        mix(f as u64);
     }
     h
 }
@@ -89,14 +95,14 @@ pub(crate) fn analyze(
     // Initial adjacency, with duplicates (parallel edges) removed afterwards.
     let mut used = 0usize;
     let mut free = NONE;
-    for e in edges {
+    for (e, &flag) in edges.iter().zip(b.edge_flags.iter()) {
         let (Some(&a), Some(&c)) = (
             b.node_var.get(e.from.0 as usize),
             b.node_var.get(e.to.0 as usize),
         ) else {
             return Err(SolveError::InvalidGraph);
         };
-        if a == NONE || c == NONE || a == c {
+        if a == NONE || c == NONE || a == c || flag == 0 {
             continue;
         }
         if used + 2 > pool {
@@ -250,11 +256,11 @@ pub(crate) fn analyze(
         }
     }
     // Where each edge's off-diagonal block goes.
-    for (slot, e) in b.edge_slot.iter_mut().zip(edges) {
+    for ((slot, e), &flag) in b.edge_slot.iter_mut().zip(edges).zip(b.edge_flags.iter()) {
         let pi = b.node_var[e.from.0 as usize];
         let pj = b.node_var[e.to.0 as usize];
         *slot = NO_SLOT;
-        if pi == NONE || pj == NONE || pi == pj {
+        if pi == NONE || pj == NONE || pi == pj || flag == 0 {
             continue;
         }
         let (row, col, flag) = if pi > pj {

@@ -46,6 +46,7 @@ pub struct SolverWorkspace<const NODES: usize, const EDGES: usize, const FACTOR:
     scratch_f: [u32; NODES],
     edge_slot: [u32; EDGES],
     edge_trig: [[f64; 2]; EDGES],
+    edge_flags: [u8; EDGES],
     rows: [u32; FACTOR],
     values: [Block; FACTOR],
     adj_node: [[u32; 2]; FACTOR],
@@ -82,6 +83,7 @@ impl<const NODES: usize, const EDGES: usize, const FACTOR: usize>
             scratch_f: [0; NODES],
             edge_slot: [0; EDGES],
             edge_trig: [[0.0; 2]; EDGES],
+            edge_flags: [0; EDGES],
             rows: [0; FACTOR],
             values: [[0.0; 9]; FACTOR],
             adj_node: [[0; 2]; FACTOR],
@@ -111,6 +113,7 @@ impl<const NODES: usize, const EDGES: usize, const FACTOR: usize>
             ],
             edge_slot: &mut self.edge_slot,
             edge_trig: &mut self.edge_trig,
+            edge_flags: &mut self.edge_flags,
             rows: &mut self.rows,
             values: &mut self.values,
             adj_node: self.adj_node.as_flattened_mut(),
@@ -160,6 +163,8 @@ pub struct SolverBuffers<'a> {
     pub edge_slot: &'a mut [u32],
     /// Per edge: cosine and sine of its measured angle.
     pub edge_trig: &'a mut [[f64; 2]],
+    /// Per edge: 1 when it takes part in the linear system (see [`crate::solver`]).
+    pub edge_flags: &'a mut [u8],
     /// Row (variable position) of each off-diagonal factor block.
     pub rows: &'a mut [u32],
     /// Off-diagonal blocks: the system's, then the factor's.
