@@ -7,7 +7,8 @@
 //! costs so much more than eq. (4). A recursive selected inversion would be faster; this
 //! version is the straightforward reference.
 
-use super::{cholesky, linear_step, ordering, SolveError, SolverBuffers};
+use super::linearize::{Stage, Warm};
+use super::{cholesky, linear_step, ordering, refresh_structure, SolveError, SolverBuffers};
 use crate::geom::spd_inverse;
 use crate::graph::PoseGraph;
 use nalgebra::Matrix3;
@@ -36,16 +37,15 @@ pub fn marginal_information_traces(
         });
     }
     let gauge_first = ordering::gauge_fixes_first(edges);
-    ws.key.valid = false;
-    ordering::analyze(nodes, edges, gauge_first, ws)?;
     for (t, e) in ws.edge_trig.iter_mut().zip(edges.iter()) {
-        *t = [
-            libm::cos(e.measurement.theta),
-            libm::sin(e.measurement.theta),
-        ];
+        *t = [libm::cos(e.measurement.theta), libm::sin(e.measurement.theta)];
     }
-    // Assemble and factorize at the current estimate (the step it solves is discarded).
-    linear_step(nodes, edges, ws, 0.0, false)?;
+    // Every edge in, max-mixtures on their current component; then assemble and factorize at
+    // the current estimate (the step it solves is discarded).
+    ws.key.valid = false;
+    let mut report = super::SolveReport::default();
+    refresh_structure(nodes, edges, ws, gauge_first, n, Warm::Off, &mut report)?;
+    linear_step(nodes, edges, ws, 0.0, false, Stage::Full, Warm::Off)?;
     ws.key.valid = false;
     let vars = ws.key.vars;
     for (i, o) in out.iter_mut().enumerate().take(n) {
