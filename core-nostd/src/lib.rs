@@ -8,6 +8,8 @@
 //! * [`geom`]: SE(2) poses, Jacobians, covariance compounding, Mahalanobis distances, and the
 //!   information heuristic of eq. (1).
 //! * [`storage`]: fixed-capacity pools with typed ids and queues.
+//! * [`sensor`]: sensor frames lent to the core (time stamps, odometry, IMU, laser scans,
+//!   camera images) and the scan checks.
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
@@ -27,6 +29,7 @@ mod fmt;
 pub mod error;
 pub mod geom;
 pub mod profile;
+pub mod sensor;
 pub mod storage;
 pub mod workload;
 
