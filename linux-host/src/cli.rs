@@ -19,6 +19,11 @@ pub struct Cli {
 pub enum Command {
     /// Print the static memory footprint of every profile and check it against its budget.
     Budget(cloi_budget::cli::BudgetArgs),
+    /// Convert a CARMEN log to a ROS 2 bag (.mcap), or a bag's odometry to a TUM trajectory.
+    Convert(crate::io::cli::ConvertArgs),
+    /// Evaluate trajectories: relations, ATE, RPE, GMapping reference poses.
+    #[command(subcommand)]
+    Eval(crate::eval::cli::EvalCommand),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -28,5 +33,7 @@ pub enum Command {
 pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
     match cli.command {
         Command::Budget(args) => cloi_budget::cli::run(&args, out),
+        Command::Convert(args) => crate::io::cli::run(&args, out),
+        Command::Eval(cmd) => crate::eval::cli::run(&cmd, out),
     }
 }

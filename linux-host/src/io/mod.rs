@@ -2,11 +2,25 @@
 //!
 //! * [`ros2`]: ROS 2 message structs (serde + CDR) and their `ros2msg` schemas.
 //! * [`bag`]: writing ROS 2 bags as MCAP files.
+//! * [`bag_read`]: reading ROS 2 bags (MCAP) as a time-ordered stream of sensor messages.
+//! * [`carmen`]: CARMEN logs (`.clf`, `.log`, `.gz`, `.bz2`).
+//! * [`convert`]: CARMEN records to ROS 2 messages (`cloi convert`).
+//! * [`frames`]: ROS 2 messages to the core's sensor frames.
+//! * [`tum`]: TUM and KITTI trajectories.
+//! * [`map_out`]: `map.pgm` + `map.yaml`, `map.png` with the trajectory, `result.mcap`.
+//! * [`cli`]: `cloi convert`.
 //! * [`atomic`]: atomic file output (temporary file, then rename), used by every writer.
 
 pub mod atomic;
 pub mod bag;
+pub mod bag_read;
+pub mod carmen;
+pub mod cli;
+pub mod convert;
+pub mod frames;
+pub mod map_out;
 pub mod ros2;
+pub mod tum;
 
 pub use bag::BagWriter;
 
