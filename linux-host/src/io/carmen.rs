@@ -119,6 +119,9 @@ pub struct CarmenStats {
     pub unknown: BTreeMap<String, u64>,
     /// Damaged lines skipped.
     pub damaged: u64,
+    /// Laser or odometry lines whose time stamp is earlier than the previous line's of the
+    /// same kind (intel.clf has about 600 of each).
+    pub stamps_stepping_back: u64,
     /// Warnings, e.g. damaged lines (the first few) and truncation.
     pub warnings: Vec<String>,
     /// The file ended inside a line or compressed stream.
@@ -154,6 +157,8 @@ pub struct CarmenReader {
     line: String,
     stats: CarmenStats,
     done: bool,
+    last_laser_ns: Option<i64>,
+    last_odom_ns: Option<i64>,
 }
 
 impl std::fmt::Debug for CarmenReader {
@@ -211,6 +216,8 @@ impl CarmenReader {
             line: String::with_capacity(8192),
             stats: CarmenStats::default(),
             done: false,
+            last_laser_ns: None,
+            last_odom_ns: None,
         }
     }
 
@@ -263,11 +270,24 @@ impl CarmenReader {
             let line_no = self.stats.lines;
             match parse_line(text) {
                 Ok(Parsed::Record(record)) => {
-                    match &record {
-                        CarmenRecord::Laser(_) => self.stats.lasers += 1,
-                        CarmenRecord::Odom(_) => self.stats.odoms += 1,
-                        CarmenRecord::Param { .. } => self.stats.params += 1,
+                    let (last, stamp) = match &record {
+                        CarmenRecord::Laser(l) => {
+                            self.stats.lasers += 1;
+                            (&mut self.last_laser_ns, l.stamp_ns)
+                        }
+                        CarmenRecord::Odom(o) => {
+                            self.stats.odoms += 1;
+                            (&mut self.last_odom_ns, o.stamp_ns)
+                        }
+                        CarmenRecord::Param { .. } => {
+                            self.stats.params += 1;
+                            return Ok(Some(record));
+                        }
+                    };
+                    if last.is_some_and(|l| stamp < l) {
+                        self.stats.stamps_stepping_back += 1;
                     }
+                    *last = Some(stamp);
                     return Ok(Some(record));
                 }
                 Ok(Parsed::Skipped(name)) => {
@@ -602,9 +622,10 @@ ROBOTLASER1 0 -1.5 3.1416 0.0175 81.9 0.01 0 2 1.5 2.5 2 7 8 0.1 0.2 0.3 0.4 0.5
 
     #[test]
     fn damaged_line_is_located_and_skipped_or_fatal() {
-        let log = "ODOM 1 2 3 0 0 0 5.0 h 0\nODOM 1 x 3 0 0 0 6.0 h 0\nODOM 1 2 3 0 0 0 7.0 h 0\n";
+        let log = "ODOM 1 2 3 0 0 0 5.0 h 0\nODOM 1 x 3 0 0 0 6.0 h 0\nODOM 1 2 3 0 0 0 4.0 h 0\n";
         let (records, stats) = read_all(reader_from_bytes(log.into(), "d.clf", false));
         assert_eq!(records.len(), 2);
+        assert_eq!(stats.stamps_stepping_back, 1);
         assert_eq!(stats.damaged, 1);
         assert!(
             stats.warnings[0].starts_with("d.clf:2: field 3 (pose) is not a number"),

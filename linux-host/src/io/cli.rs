@@ -79,6 +79,7 @@ pub fn run(args: &ConvertArgs, out: &mut dyn Write) -> Result<()> {
                 "skipped_lines": r.input.skipped,
                 "unknown_lines": r.input.unknown,
                 "damaged_lines": r.input.damaged,
+                "stamps_stepping_back": r.input.stamps_stepping_back,
                 "truncated": r.input.truncated,
             })
         }
