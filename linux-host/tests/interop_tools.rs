@@ -270,3 +270,41 @@ fn ate_and_rpe_agree_with_evo() {
         }
     }
 }
+
+#[test]
+fn nav2_odometry_matches_rosbags_and_mcap() {
+    let Some(python) = common::venv_python() else {
+        return;
+    };
+    let Some(bag) = shared_file("mcap/nav2_turtlebot.mcap") else {
+        return;
+    };
+    let theirs: Value = serde_json::from_str(&common::run_python(
+        &python,
+        "decode_bag.py",
+        &[bag.as_os_str()],
+    ))
+    .unwrap();
+    let ours: Vec<_> = BagReader::open(&bag, BagReadOptions::default())
+        .unwrap()
+        .filter_map(|m| {
+            let m = m.unwrap();
+            match m.msg {
+                SensorMsg::Odom(o) => Some((m.log_time_ns, o)),
+                _ => None,
+            }
+        })
+        .collect();
+    let odom = &theirs["/odom"];
+    assert_eq!(odom["count"].as_u64().unwrap() as usize, ours.len());
+    for (k, (t, o)) in ours.iter().enumerate() {
+        assert_eq!(odom["stamps"][k].as_u64().unwrap(), *t);
+        let v = &odom["values"][k];
+        assert_eq!(v["x"].as_f64().unwrap(), o.pose.pose.position.x);
+        assert_eq!(v["y"].as_f64().unwrap(), o.pose.pose.position.y);
+        assert_eq!(v["qz"].as_f64().unwrap(), o.pose.pose.orientation.z);
+        assert_eq!(v["vx"].as_f64().unwrap(), o.twist.twist.linear.x);
+        assert_eq!(v["child"], o.child_frame_id.as_str());
+    }
+    assert_eq!(theirs["/tf"]["count"], 5422);
+}

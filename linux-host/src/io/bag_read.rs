@@ -15,12 +15,10 @@
 //!   skipped (an error in strict mode). ROS 1 messages (`ros1` encoding) are counted and
 //!   skipped: the project reads ROS 2 bags only.
 
-use std::cell::Cell;
-use std::collections::{BTreeMap, BinaryHeap};
+use std::collections::{BTreeMap, BinaryHeap, HashMap};
 use std::fs::File;
 use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
-use std::rc::Rc;
 use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
@@ -173,6 +171,8 @@ pub struct BagStats {
     pub foreign_encoding: u64,
     /// Messages that arrived after a later one had been delivered.
     pub out_of_order: u64,
+    /// Messages on a channel id without a channel record (skipped).
+    pub unknown_channel: u64,
     /// Bytes read from the file.
     pub bytes_read: u64,
     /// Warnings (damage, truncation, decode failures).
@@ -206,110 +206,70 @@ impl Ord for Pending {
     }
 }
 
-struct CountingRead<R> {
-    inner: R,
-    count: Rc<Cell<u64>>,
+/// What is known about a channel.
+#[derive(Debug, Clone)]
+struct ChannelInfo {
+    topic: Arc<str>,
+    type_name: String,
+    encoding: String,
 }
 
-impl<R: Read> Read for CountingRead<R> {
-    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        let n = self.inner.read(buf)?;
-        self.count.set(self.count.get() + n as u64);
-        Ok(n)
-    }
-}
-
-/// Streams the sensor messages of a ROS 2 bag in log-time order.
-pub struct BagReader {
-    messages: mcap::io::MessageReader<CountingRead<Box<dyn Read>>>,
-    bytes: Rc<Cell<u64>>,
+/// Channel bookkeeping, statistics and decoding; apart from the byte reader so a record
+/// borrowed from the reader can be decoded in place.
+#[derive(Debug)]
+struct Decoder {
     path: PathBuf,
     options: BagReadOptions,
-    window: BinaryHeap<Pending>,
-    newest: u64,
-    last_delivered: Option<u64>,
-    order: u64,
+    schemas: HashMap<u16, String>,
+    channels: HashMap<u16, ChannelInfo>,
     stats: BagStats,
-    source_done: bool,
-    failed: bool,
     warned_decode: u64,
 }
 
-impl std::fmt::Debug for BagReader {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("BagReader")
-            .field("path", &self.path)
-            .field("stats", &self.stats)
-            .finish()
-    }
-}
-
-impl BagReader {
-    /// Opens a bag file.
-    ///
-    /// # Errors
-    /// The file cannot be opened.
-    pub fn open(path: &Path, options: BagReadOptions) -> Result<Self> {
-        let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
-        let input: Box<dyn Read> = Box::new(BufReader::with_capacity(1 << 16, file));
-        Ok(Self::from_reader(input, path, options))
-    }
-
-    /// Reads a bag from any reader; `path` names it in messages.
-    pub fn from_reader(input: Box<dyn Read>, path: &Path, options: BagReadOptions) -> Self {
-        let bytes = Rc::new(Cell::new(0));
-        let counting = CountingRead {
-            inner: input,
-            count: Rc::clone(&bytes),
-        };
-        Self {
-            messages: mcap::io::MessageReader::new(counting),
-            bytes,
-            path: path.to_owned(),
-            options,
-            window: BinaryHeap::new(),
-            newest: 0,
-            last_delivered: None,
-            order: 0,
-            stats: BagStats::default(),
-            source_done: false,
-            failed: false,
-            warned_decode: 0,
-        }
-    }
-
-    /// What was seen so far (complete once the iterator has ended).
-    pub fn stats(&self) -> &BagStats {
-        &self.stats
-    }
-
+impl Decoder {
     fn warn(&mut self, message: String) {
         log::warn!("{message}");
         self.stats.warnings.push(message);
     }
 
-    /// Decodes one raw message, or `None` if it is skipped.
-    fn decode(&mut self, raw: &mcap::Message<'static>) -> Result<Option<BagMessage>> {
-        let channel = &raw.channel;
-        let type_name = channel
-            .schema
-            .as_ref()
-            .map_or_else(String::new, |s| s.name.clone());
+    /// Decodes one message, or `None` if it is skipped.
+    fn decode(
+        &mut self,
+        header: &mcap::records::MessageHeader,
+        data: &[u8],
+        offset: u64,
+    ) -> Result<Option<BagMessage>> {
+        let Some(channel) = self.channels.get(&header.channel_id).cloned() else {
+            self.stats.unknown_channel += 1;
+            if self.stats.unknown_channel == 1 {
+                let msg = format!(
+                    "{}: message on channel {} which has no channel record (near byte {offset}); \
+                     such messages are skipped",
+                    self.path.display(),
+                    header.channel_id
+                );
+                if self.options.strict {
+                    bail!(msg);
+                }
+                self.warn(msg);
+            }
+            return Ok(None);
+        };
         let topic_stats = self
             .stats
             .topics
-            .entry(channel.topic.clone())
+            .entry(channel.topic.to_string())
             .or_insert_with(|| TopicStats {
-                type_name: type_name.clone(),
+                type_name: channel.type_name.clone(),
                 ..Default::default()
             });
-        let kind = TopicKind::of_type(&type_name)
+        let kind = TopicKind::of_type(&channel.type_name)
             .filter(|&kind| self.options.topics.accepts(kind, &channel.topic));
         let Some(kind) = kind else {
             topic_stats.skipped += 1;
             return Ok(None);
         };
-        if channel.message_encoding != "cdr" {
+        if channel.encoding != "cdr" {
             topic_stats.skipped += 1;
             self.stats.foreign_encoding += 1;
             if self.stats.foreign_encoding == 1 {
@@ -317,13 +277,12 @@ impl BagReader {
                     "{}: topic {} is in {:?} encoding; only ROS 2 (cdr) messages are read",
                     self.path.display(),
                     channel.topic,
-                    channel.message_encoding
+                    channel.encoding
                 );
                 self.warn(msg);
             }
             return Ok(None);
         }
-        let data: &[u8] = &raw.data;
         let decoded = match kind {
             TopicKind::Scan => LaserScan::from_cdr(data).map(SensorMsg::Scan),
             TopicKind::Odom => Odometry::from_cdr(data).map(|m| SensorMsg::Odom(Box::new(m))),
@@ -343,8 +302,8 @@ impl BagReader {
             Ok(msg) => {
                 topic_stats.delivered += 1;
                 Ok(Some(BagMessage {
-                    log_time_ns: raw.log_time,
-                    topic: Arc::from(channel.topic.as_str()),
+                    log_time_ns: header.log_time,
+                    topic: channel.topic,
                     msg,
                 }))
             }
@@ -352,12 +311,11 @@ impl BagReader {
                 topic_stats.skipped += 1;
                 self.stats.undecodable += 1;
                 let what = format!(
-                    "{}: message {} on {} (log time {} ns, near byte {}) does not decode: {err:#}",
+                    "{}: message {} on {} (log time {} ns, near byte {offset}) does not decode: {err:#}",
                     self.path.display(),
-                    raw.sequence,
+                    header.sequence,
                     channel.topic,
-                    raw.log_time,
-                    self.bytes.get()
+                    header.log_time,
                 );
                 if self.options.strict {
                     bail!(what);
@@ -370,49 +328,175 @@ impl BagReader {
             }
         }
     }
+}
 
-    /// Pulls one raw message from the file into the window; `Ok(false)` at the end.
+/// Streams the sensor messages of a ROS 2 bag in log-time order.
+pub struct BagReader {
+    linear: mcap::sans_io::LinearReader,
+    source: Box<dyn Read>,
+    bytes: u64,
+    decoder: Decoder,
+    window: BinaryHeap<Pending>,
+    newest: u64,
+    last_delivered: Option<u64>,
+    order: u64,
+    source_done: bool,
+    failed: bool,
+}
+
+impl std::fmt::Debug for BagReader {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BagReader")
+            .field("path", &self.decoder.path)
+            .field("stats", &self.decoder.stats)
+            .finish()
+    }
+}
+
+impl BagReader {
+    /// Opens a bag file.
+    ///
+    /// # Errors
+    /// The file cannot be opened.
+    pub fn open(path: &Path, options: BagReadOptions) -> Result<Self> {
+        let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+        let input: Box<dyn Read> = Box::new(BufReader::with_capacity(1 << 16, file));
+        Ok(Self::from_reader(input, path, options))
+    }
+
+    /// Reads a bag from any reader; `path` names it in messages.
+    pub fn from_reader(input: Box<dyn Read>, path: &Path, options: BagReadOptions) -> Self {
+        Self {
+            linear: mcap::sans_io::LinearReader::new(),
+            source: input,
+            bytes: 0,
+            decoder: Decoder {
+                path: path.to_owned(),
+                options,
+                schemas: HashMap::new(),
+                channels: HashMap::new(),
+                stats: BagStats::default(),
+                warned_decode: 0,
+            },
+            window: BinaryHeap::new(),
+            newest: 0,
+            last_delivered: None,
+            order: 0,
+            source_done: false,
+            failed: false,
+        }
+    }
+
+    /// What was seen so far (complete once the iterator has ended).
+    pub fn stats(&self) -> &BagStats {
+        &self.decoder.stats
+    }
+
+    fn damage(&mut self, err: &dyn std::fmt::Display) -> Result<bool> {
+        let what = format!(
+            "{}: the file is damaged or truncated near byte {}: {err}",
+            self.decoder.path.display(),
+            self.bytes
+        );
+        self.decoder.stats.truncated = true;
+        if self.decoder.options.strict {
+            bail!(what);
+        }
+        let kept: u64 = self
+            .decoder
+            .stats
+            .topics
+            .values()
+            .map(|t| t.delivered)
+            .sum();
+        self.decoder
+            .warn(format!("{what}; kept the {kept} messages before it"));
+        Ok(false)
+    }
+
+    /// Reads records until one message is in the window; `Ok(false)` at the end.
     fn pull(&mut self) -> Result<bool> {
+        use mcap::records::Record;
+        use mcap::sans_io::LinearReadEvent;
         loop {
-            let Some(next) = self.messages.next() else {
-                return Ok(false);
+            let event = match self.linear.next_event() {
+                None => return Ok(false),
+                Some(Ok(event)) => event,
+                Some(Err(err)) => return self.damage(&err),
             };
-            self.stats.bytes_read = self.bytes.get();
-            let raw = match next {
-                Ok(raw) => raw,
+            let (opcode, data) = match event {
+                LinearReadEvent::ReadRequest(need) => {
+                    let read = loop {
+                        match self.source.read(self.linear.insert(need)) {
+                            Ok(n) => break n,
+                            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                            Err(e) => {
+                                let e = anyhow::Error::from(e);
+                                return self.damage(&e);
+                            }
+                        }
+                    };
+                    self.bytes += read as u64;
+                    self.decoder.stats.bytes_read = self.bytes;
+                    self.linear.notify_read(read);
+                    continue;
+                }
+                LinearReadEvent::Record { opcode, data } => (opcode, data),
+            };
+            let record = match mcap::parse_record(opcode, data) {
+                Ok(r) => r,
                 Err(err) => {
-                    let what = format!(
-                        "{}: the file is damaged or truncated near byte {}: {err}",
-                        self.path.display(),
-                        self.bytes.get()
-                    );
-                    self.stats.truncated = true;
-                    if self.options.strict {
-                        bail!(what);
-                    }
-                    let kept: u64 = self.stats.topics.values().map(|t| t.delivered).sum();
-                    self.warn(format!("{what}; kept the {kept} messages before it"));
-                    return Ok(false);
+                    let e = anyhow::anyhow!("bad record (opcode {opcode:#x}): {err}");
+                    return self.damage(&e);
                 }
             };
-            let Some(msg) = self.decode(&raw)? else {
-                continue;
+            let msg = match record {
+                Record::Schema { header, .. } => {
+                    self.decoder.schemas.insert(header.id, header.name);
+                    continue;
+                }
+                Record::Channel(ch) => {
+                    let type_name = self
+                        .decoder
+                        .schemas
+                        .get(&ch.schema_id)
+                        .cloned()
+                        .unwrap_or_default();
+                    self.decoder.channels.insert(
+                        ch.id,
+                        ChannelInfo {
+                            topic: Arc::from(ch.topic.as_str()),
+                            type_name,
+                            encoding: ch.message_encoding,
+                        },
+                    );
+                    continue;
+                }
+                // The summary after the data section only repeats what came before.
+                Record::DataEnd(_) => return Ok(false),
+                Record::Message { header, data } => {
+                    match self.decoder.decode(&header, &data, self.bytes)? {
+                        Some(msg) => msg,
+                        None => continue,
+                    }
+                }
+                _ => continue,
             };
             let log_time = msg.log_time_ns;
             if let Some(last) = self.last_delivered {
                 if log_time < last {
-                    self.stats.out_of_order += 1;
+                    self.decoder.stats.out_of_order += 1;
                     let what = format!(
                         "{}: message on {} at {log_time} ns arrives after one at {last} ns \
                          was delivered (disorder beyond the reorder window)",
-                        self.path.display(),
+                        self.decoder.path.display(),
                         msg.topic
                     );
-                    if self.options.strict {
+                    if self.decoder.options.strict {
                         bail!(what);
                     }
-                    if self.stats.out_of_order == 1 {
-                        self.warn(what);
+                    if self.decoder.stats.out_of_order == 1 {
+                        self.decoder.warn(what);
                     }
                 }
             }
@@ -432,8 +516,9 @@ impl BagReader {
             None => false,
             Some(oldest) => {
                 self.source_done
-                    || self.window.len() > self.options.reorder_capacity
-                    || self.newest.saturating_sub(oldest.log_time) > self.options.reorder_window_ns
+                    || self.window.len() > self.decoder.options.reorder_capacity
+                    || self.newest.saturating_sub(oldest.log_time)
+                        > self.decoder.options.reorder_window_ns
             }
         }
     }
@@ -465,14 +550,22 @@ impl Iterator for BagReader {
         match self.next_message() {
             Ok(Some(m)) => Some(Ok(m)),
             Ok(None) => {
-                if self.stats.out_of_order > 1 {
+                let d = &mut self.decoder;
+                if d.stats.out_of_order > 1 {
                     let msg = format!(
                         "{}: {} messages arrived out of log-time order in all",
-                        self.path.display(),
-                        self.stats.out_of_order
+                        d.path.display(),
+                        d.stats.out_of_order
                     );
-                    self.warn(msg);
-                    self.stats.out_of_order = self.stats.out_of_order.max(1);
+                    d.warn(msg);
+                }
+                if d.stats.unknown_channel > 1 {
+                    let msg = format!(
+                        "{}: {} messages on channels without a channel record were skipped",
+                        d.path.display(),
+                        d.stats.unknown_channel
+                    );
+                    d.warn(msg);
                 }
                 self.failed = true;
                 None

@@ -99,7 +99,10 @@ pub fn run(args: &ConvertArgs, out: &mut dyn Write) -> Result<()> {
 
 /// Summary of a planar odometry track.
 fn odometry_summary(poses: &[StampedPose]) -> serde_json::Value {
-    let length: f64 = poses.windows(2).map(|w| (w[1].p - w[0].p).norm()).sum();
+    let length = poses
+        .windows(2)
+        .map(|w| (w[1].p - w[0].p).norm())
+        .fold(0.0, |a, b| a + b);
     let first = poses.first();
     let last = poses.last();
     let pose_json = |p: Option<&StampedPose>| {
@@ -184,6 +187,8 @@ fn bag_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
         "tf": tf,
         "other_sensor_messages": other,
         "undecodable": stats.undecodable,
+        "foreign_encoding": stats.foreign_encoding,
+        "unknown_channel": stats.unknown_channel,
         "out_of_order": stats.out_of_order,
         "truncated": stats.truncated,
     }))
