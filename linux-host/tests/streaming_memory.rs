@@ -95,14 +95,22 @@ fn gzip(path: &Path, out: &Path) {
 
 fn read_carmen(path: &Path) -> u64 {
     let mut reader = CarmenReader::open(path, true).unwrap();
-    let n = reader.by_ref().map(|r| r.unwrap()).count() as u64;
+    let mut n = 0;
+    for r in reader.by_ref() {
+        r.unwrap();
+        n += 1;
+    }
     assert!(reader.stats().warnings.is_empty());
     n
 }
 
 fn read_bag(path: &Path) -> u64 {
     let mut reader = BagReader::open(path, BagReadOptions::default()).unwrap();
-    let n = reader.by_ref().map(|m| m.unwrap()).count() as u64;
+    let mut n = 0;
+    for m in reader.by_ref() {
+        m.unwrap();
+        n += 1;
+    }
     assert_eq!(reader.stats().out_of_order, 0);
     n
 }
