@@ -95,3 +95,39 @@ fn bag_writer_output_decodes_with_rosbags_and_mcap() {
         assert_eq!(v["/path"]["values"][0]["poses"], 3);
     }
 }
+
+#[test]
+fn result_mcap_decodes_with_rosbags_and_mcap() {
+    use cloi_host::io::map_out::{write_result_mcap, GridRef};
+    let Some(python) = common::venv_python() else {
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("result.mcap");
+    let cells: Vec<i8> = (0..200).map(|i| [-1, 0, 100][i % 3]).collect();
+    let grid = GridRef {
+        width: 20,
+        height: 10,
+        resolution: 0.05,
+        origin: (-0.5, -0.25, 0.0),
+        cells: &cells,
+    };
+    let t0 = 1_000_000_000_i64;
+    let traj: Vec<_> = (0..7)
+        .map(|i| (t0 + i * 100_000_000, (0.1 * i as f64, 0.0, 0.0)))
+        .collect();
+    write_result_mcap(&path, &grid, &traj).unwrap();
+    let v: Value = serde_json::from_str(&common::run_python(
+        &python,
+        "decode_bag.py",
+        &[path.as_os_str()],
+    ))
+    .unwrap();
+    assert_eq!(v["/map"]["type"], "nav_msgs/msg/OccupancyGrid");
+    assert_eq!(v["/map"]["values"][0]["w"], 20);
+    assert_eq!(v["/map"]["values"][0]["cells"], 200);
+    assert_eq!(v["/map"]["values"][0]["occupied"], 66);
+    assert_eq!(v["/trajectory"]["values"][0]["poses"], 7);
+    assert_eq!(v["/pose"]["count"], 7);
+    assert_eq!(v["/pose"]["type"], "geometry_msgs/msg/PoseStamped");
+}
