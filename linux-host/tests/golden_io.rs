@@ -55,14 +55,15 @@ fn shared_logs_round_trip_through_mcap() {
                     assert_eq!(s.header.stamp.to_nanos(), lasers[si].stamp_ns);
                     si += 1;
                 }
-                SensorMsg::Odom(o) if odoms > 0 && oi < odom_lines.len() => {
-                    // fr079 also gets one odometry message from its first scan (before its
-                    // first ODOM line); skip ones that are not ODOM lines.
-                    if o.header.stamp.to_nanos() == odom_lines[oi].stamp_ns {
-                        let (x, y, _) = o.pose.pose.to_planar();
-                        assert_eq!((x, y), (odom_lines[oi].pose.0, odom_lines[oi].pose.1));
-                        oi += 1;
-                    }
+                // fr079 also gets one odometry message from its first scan (before its first
+                // ODOM line); only messages from ODOM lines are compared.
+                SensorMsg::Odom(o)
+                    if oi < odom_lines.len()
+                        && o.header.stamp.to_nanos() == odom_lines[oi].stamp_ns =>
+                {
+                    let (x, y, _) = o.pose.pose.to_planar();
+                    assert_eq!((x, y), (odom_lines[oi].pose.0, odom_lines[oi].pose.1));
+                    oi += 1;
                 }
                 _ => {}
             }
