@@ -69,6 +69,18 @@ impl AtomicFile {
 
     /// Renames an already written temporary file to `target`.
     pub(crate) fn persist(temp: NamedTempFile, target: &Path) -> Result<()> {
+        // Temporary files are private (0600); give the result the target's old permissions,
+        // or the usual 0644 for a new file.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let perms = fs::metadata(target)
+                .map(|m| m.permissions())
+                .unwrap_or_else(|_| fs::Permissions::from_mode(0o644));
+            temp.as_file()
+                .set_permissions(perms)
+                .with_context(|| format!("setting permissions of {}", target.display()))?;
+        }
         temp.as_file()
             .sync_all()
             .with_context(|| format!("syncing {}", target.display()))?;
@@ -120,6 +132,12 @@ mod tests {
         assert!(!path.exists());
         f.commit().unwrap();
         assert_eq!(fs::read(&path).unwrap(), b"hello");
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let mode = fs::metadata(&path).unwrap().permissions().mode();
+            assert_eq!(mode & 0o777, 0o644);
+        }
         // No temporary file is left behind.
         assert_eq!(fs::read_dir(path.parent().unwrap()).unwrap().count(), 1);
     }
