@@ -117,7 +117,7 @@ fn rosbags_bag_from_carmen_reads_back_the_same() {
     };
     let dir = tempfile::tempdir().unwrap();
     let bag_dir = dir.path().join("intel_rosbags");
-    let max_scans = 800;
+    let max_scans = 300;
     let printed = common::run_python(
         &python,
         "carmen_to_rosbag.py",
