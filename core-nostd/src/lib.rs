@@ -26,6 +26,7 @@
 #[macro_use]
 mod fmt;
 
+pub mod backend;
 pub mod error;
 pub mod geom;
 pub mod profile;
