@@ -11,6 +11,8 @@
 //! * [`graph`]: the SE(2) pose graph over caller-provided storage.
 //! * [`solver`]: sparse Gauss-Newton / Levenberg-Marquardt with robust kernels and
 //!   max-mixtures.
+//! * [`sensor`]: sensor frames lent to the core (time stamps, odometry, IMU, laser scans,
+//!   camera images) and the scan checks.
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
@@ -33,6 +35,7 @@ pub mod geom;
 pub mod graph;
 pub mod profile;
 pub mod solver;
+pub mod sensor;
 pub mod storage;
 pub mod workload;
 

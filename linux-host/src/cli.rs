@@ -26,6 +26,11 @@ pub enum Command {
     Prune(crate::prune::PruneArgs),
     /// Add seeded random false loop closures to a pose graph (robustness tests).
     Corrupt(crate::corrupt::CorruptArgs),
+    /// Convert a CARMEN log to a ROS 2 bag (.mcap), or a bag's odometry to a TUM trajectory.
+    Convert(crate::io::cli::ConvertArgs),
+    /// Evaluate trajectories: relations, ATE, RPE, GMapping reference poses.
+    #[command(subcommand)]
+    Eval(crate::eval::cli::EvalCommand),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -38,5 +43,7 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Optimize(args) => crate::optimize::run(&args, out),
         Command::Prune(args) => crate::prune::run(&args, out),
         Command::Corrupt(args) => crate::corrupt::run(&args, out),
+        Command::Convert(args) => crate::io::cli::run(&args, out),
+        Command::Eval(cmd) => crate::eval::cli::run(&cmd, out),
     }
 }

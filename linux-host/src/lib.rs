@@ -10,3 +10,5 @@ pub mod graph_io;
 pub mod optimize;
 pub mod prune;
 pub mod prune_online;
+pub mod eval;
+pub mod io;

@@ -1,0 +1,20 @@
+//! Sensor frames as the mapper consumes them: small `Copy` values and views over borrowed
+//! buffers, so the core never owns heap data. The host decodes files (ROS 2 bags, CARMEN logs)
+//! or drivers into these types and lends them to the core for one call.
+//!
+//! * [`Timestamp`]: signed nanoseconds since an epoch the caller chooses (Unix time for logs).
+//! * [`OdometrySample`], [`ImuSample`]: wheel odometry (pose and twist) and angular rate.
+//! * [`LaserScanView`]: a planar scan over `&[f32]` ranges, checked once, then iterated as
+//!   valid beams; NaN, infinite and out-of-range beams are counted in [`BeamStats`] and skipped.
+//! * [`ScanStampGuard`]: rejects scans whose time does not increase.
+//! * [`ImageView`]: a camera picture over `&[u8]` (mono8, rgb8, bgr8).
+
+mod image;
+mod odometry;
+mod scan;
+mod time;
+
+pub use image::{ImageError, ImageView, PixelFormat};
+pub use odometry::{ImuSample, OdometrySample, Twist2};
+pub use scan::{Beam, BeamStats, LaserScanView, ScanError, ScanGeometry, ScanStampGuard};
+pub use time::Timestamp;

@@ -1,0 +1,143 @@
+//! `cloi eval relations | ate | rpe | ref`: each prints one JSON object.
+
+use std::io::Write;
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::{Args, Subcommand};
+use serde_json::json;
+
+use super::metrics::{ate, rpe, DeltaUnit};
+use super::relations::{load_relations, relations_from_reference, score, PlanarTrajectory};
+use super::traj::{Alignment, Trajectory};
+
+/// The `cloi eval` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum EvalCommand {
+    /// Relation metric (Kuemmerle et al. 2009) against a relations file.
+    Relations(RelationsArgs),
+    /// Absolute trajectory error after alignment (as `evo_ape`).
+    Ate(AteArgs),
+    /// Relative pose error (as `evo_rpe`).
+    Rpe(RpeArgs),
+    /// Relative errors against GMapping reference poses (`*.gfs_reference_poses.txt`).
+    Ref(RefArgs),
+}
+
+/// Arguments of `cloi eval relations`.
+#[derive(Debug, Args)]
+pub struct RelationsArgs {
+    /// Estimated trajectory (TUM).
+    #[arg(long)]
+    pub trajectory: PathBuf,
+    /// Relations file (`t1 t2 x y z roll pitch yaw` or `t1 t2 x y theta`).
+    #[arg(long)]
+    pub relations: PathBuf,
+    /// Time stamp tolerance (s); 0 matches exactly.
+    #[arg(long, default_value_t = 0.0)]
+    pub tolerance: f64,
+}
+
+/// Arguments of `cloi eval ate`.
+#[derive(Debug, Args)]
+pub struct AteArgs {
+    /// Estimated trajectory (TUM or KITTI).
+    #[arg(long)]
+    pub trajectory: PathBuf,
+    /// Reference trajectory (TUM or KITTI).
+    #[arg(long)]
+    pub reference: PathBuf,
+    /// Alignment of the estimate to the reference.
+    #[arg(long, value_enum, default_value_t = Alignment::Se3)]
+    pub align: Alignment,
+    /// Largest time difference of matched poses (s), as evo's `--t_max_diff`.
+    #[arg(long, default_value_t = 0.01)]
+    pub max_time_diff: f64,
+}
+
+/// Arguments of `cloi eval rpe`.
+#[derive(Debug, Args)]
+pub struct RpeArgs {
+    /// Estimated trajectory (TUM or KITTI).
+    #[arg(long)]
+    pub trajectory: PathBuf,
+    /// Reference trajectory (TUM or KITTI).
+    #[arg(long)]
+    pub reference: PathBuf,
+    /// Step between compared poses.
+    #[arg(long, default_value_t = 1.0)]
+    pub delta: f64,
+    /// Unit of the step.
+    #[arg(long, value_enum, default_value_t = DeltaUnit::Frames)]
+    pub delta_unit: DeltaUnit,
+    /// Accepted for symmetry with `ate`; a rigid alignment does not change the RPE.
+    #[arg(long, value_enum, default_value_t = Alignment::None)]
+    pub align: Alignment,
+    /// Largest time difference of matched poses (s).
+    #[arg(long, default_value_t = 0.01)]
+    pub max_time_diff: f64,
+    /// With `--delta-unit meters`: start the first pair at the first pose `delta` metres
+    /// along, as evo did before it always included pose 0 (the stored evo results).
+    #[arg(long)]
+    pub first_pair_at_delta: bool,
+}
+
+/// Arguments of `cloi eval ref`.
+#[derive(Debug, Args)]
+pub struct RefArgs {
+    /// Estimated trajectory (TUM) with the logs' scan time stamps.
+    #[arg(long)]
+    pub trajectory: PathBuf,
+    /// GMapping reference poses (`timestamp index x y theta`).
+    #[arg(long)]
+    pub reference: PathBuf,
+    /// Pairs of reference poses at most this far apart (m) become relations.
+    #[arg(long, default_value_t = 1.0)]
+    pub max_distance: f64,
+    /// Time stamp tolerance (s); 0 matches exactly.
+    #[arg(long, default_value_t = 0.0)]
+    pub tolerance: f64,
+}
+
+/// Runs an eval subcommand, printing JSON to `out`.
+///
+/// # Errors
+/// Unreadable inputs or nothing to compare.
+pub fn run(cmd: &EvalCommand, out: &mut dyn Write) -> Result<()> {
+    let value = match cmd {
+        EvalCommand::Relations(a) => {
+            let traj = PlanarTrajectory::load_tum(&a.trajectory)?;
+            let rels = load_relations(&a.relations)?;
+            serde_json::to_value(score(&traj, &rels, a.tolerance)?)?
+        }
+        EvalCommand::Ate(a) => {
+            let est = Trajectory::load(&a.trajectory)?;
+            let reference = Trajectory::load(&a.reference)?;
+            serde_json::to_value(ate(&est, &reference, a.align, a.max_time_diff)?)?
+        }
+        EvalCommand::Rpe(a) => {
+            let est = Trajectory::load(&a.trajectory)?;
+            let reference = Trajectory::load(&a.reference)?;
+            serde_json::to_value(rpe(
+                &est,
+                &reference,
+                a.delta,
+                a.delta_unit,
+                a.max_time_diff,
+                a.first_pair_at_delta,
+            )?)?
+        }
+        EvalCommand::Ref(a) => {
+            let traj = PlanarTrajectory::load_tum(&a.trajectory)?;
+            let reference = PlanarTrajectory::load_reference(&a.reference)?;
+            let rels = relations_from_reference(&reference, a.max_distance);
+            let mut v = serde_json::to_value(score(&traj, &rels, a.tolerance)?)?;
+            v["max_distance_m"] = json!(a.max_distance);
+            v["reference_poses"] = json!(reference.poses.len());
+            v["relations"] = json!(rels.len());
+            v
+        }
+    };
+    writeln!(out, "{}", serde_json::to_string_pretty(&value)?)?;
+    Ok(())
+}

@@ -1,0 +1,12 @@
+//! Trajectory evaluation (`cloi eval`): the relation metric of Kuemmerle et al. (2009), ATE and
+//! RPE as `evo` computes them, and relative errors against GMapping reference poses.
+//!
+//! * [`traj`]: loading, time association, Umeyama alignment, error statistics.
+//! * [`metrics`]: ATE and RPE.
+//! * [`relations`]: the relation metric and relations from reference poses.
+//! * [`cli`]: the `cloi eval` subcommands (a group, so more metrics can join).
+
+pub mod cli;
+pub mod metrics;
+pub mod relations;
+pub mod traj;

@@ -1,0 +1,179 @@
+//! Trajectories in the TUM format (`timestamp tx ty tz qx qy qz qw`, one pose per line, `#`
+//! comments) and in the KITTI format (12 numbers of a 3x4 row-major matrix per line, no time).
+
+use std::fmt::Write as _;
+use std::io::BufRead;
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
+
+use super::atomic;
+use super::carmen::open_maybe_compressed;
+
+/// One pose of a 3D trajectory.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StampedPose {
+    /// Time (s).
+    pub t: f64,
+    /// Position (m).
+    pub p: Vector3<f64>,
+    /// Orientation.
+    pub q: UnitQuaternion<f64>,
+}
+
+impl StampedPose {
+    /// A planar pose `(x, y, theta)` at time `t`.
+    pub fn planar(t: f64, x: f64, y: f64, theta: f64) -> Self {
+        Self {
+            t,
+            p: Vector3::new(x, y, 0.0),
+            q: UnitQuaternion::from_axis_angle(&Vector3::z_axis(), theta),
+        }
+    }
+}
+
+/// Reads a TUM trajectory.
+///
+/// # Errors
+/// Unreadable file, or a line without 8 numbers (with file and line number).
+pub fn read_tum(path: &Path) -> Result<Vec<StampedPose>> {
+    let reader = open_maybe_compressed(path)?;
+    let mut out = Vec::new();
+    for (i, line) in reader.lines().enumerate() {
+        let line = line.with_context(|| format!("{}:{}", path.display(), i + 1))?;
+        let text = line.trim();
+        if text.is_empty() || text.starts_with('#') {
+            continue;
+        }
+        let v: Vec<f64> = text
+            .split_ascii_whitespace()
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("{}:{}: not a number", path.display(), i + 1))?;
+        let [t, x, y, z, qx, qy, qz, qw] = v[..] else {
+            bail!(
+                "{}:{}: expected 8 numbers (t x y z qx qy qz qw), found {}",
+                path.display(),
+                i + 1,
+                v.len()
+            );
+        };
+        out.push(StampedPose {
+            t,
+            p: Vector3::new(x, y, z),
+            q: UnitQuaternion::from_quaternion(Quaternion::new(qw, qx, qy, qz)),
+        });
+    }
+    Ok(out)
+}
+
+/// Reads a KITTI trajectory (3x4 matrices); times are the line numbers unless `times` is
+/// given (one time per line, e.g. KITTI's `times.txt`).
+///
+/// # Errors
+/// Unreadable file, or a line without 12 numbers.
+pub fn read_kitti(path: &Path, times: Option<&Path>) -> Result<Vec<StampedPose>> {
+    let stamps: Option<Vec<f64>> = match times {
+        Some(tp) => {
+            let text =
+                std::fs::read_to_string(tp).with_context(|| format!("reading {}", tp.display()))?;
+            Some(
+                text.split_ascii_whitespace()
+                    .map(str::parse)
+                    .collect::<Result<_, _>>()
+                    .with_context(|| format!("{}: not a number", tp.display()))?,
+            )
+        }
+        None => None,
+    };
+    let reader = open_maybe_compressed(path)?;
+    let mut out = Vec::new();
+    for (i, line) in reader.lines().enumerate() {
+        let line = line.with_context(|| format!("{}:{}", path.display(), i + 1))?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        let v: Vec<f64> = line
+            .split_ascii_whitespace()
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("{}:{}: not a number", path.display(), i + 1))?;
+        if v.len() != 12 {
+            bail!("{}:{}: expected 12 numbers", path.display(), i + 1);
+        }
+        let r = Matrix3::new(v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10]);
+        let t = match &stamps {
+            Some(s) => *s
+                .get(out.len())
+                .with_context(|| format!("{}: fewer times than poses", path.display()))?,
+            None => out.len() as f64,
+        };
+        out.push(StampedPose {
+            t,
+            p: Vector3::new(v[3], v[7], v[11]),
+            q: UnitQuaternion::from_matrix(&r),
+        });
+    }
+    Ok(out)
+}
+
+/// The TUM text of a trajectory (times with 9 decimals, positions and quaternions with 9).
+pub fn tum_text(poses: &[StampedPose]) -> String {
+    let mut s = String::with_capacity(poses.len() * 100);
+    s.push_str("# timestamp tx ty tz qx qy qz qw\n");
+    for p in poses {
+        let q = p.q.quaternion();
+        let _ = writeln!(
+            s,
+            "{:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}",
+            p.t, p.p.x, p.p.y, p.p.z, q.i, q.j, q.k, q.w
+        );
+    }
+    s
+}
+
+/// Writes a TUM trajectory atomically.
+///
+/// # Errors
+/// Any IO error.
+pub fn write_tum(path: &Path, poses: &[StampedPose]) -> Result<()> {
+    atomic::write_file(path, tum_text(poses).as_bytes())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tum_round_trip() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.tum");
+        let poses = vec![
+            StampedPose::planar(976052890.244111, 1.0, 2.0, 0.5),
+            StampedPose::planar(976052891.0, -1.0, 0.25, -3.0),
+        ];
+        write_tum(&path, &poses).unwrap();
+        let back = read_tum(&path).unwrap();
+        assert_eq!(back.len(), 2);
+        for (a, b) in poses.iter().zip(&back) {
+            assert!((a.t - b.t).abs() < 1e-6);
+            assert!((a.p - b.p).norm() < 1e-9);
+            assert!(a.q.angle_to(&b.q) < 1e-8);
+        }
+        std::fs::write(&path, "1 2 3\n").unwrap();
+        let err = read_tum(&path).unwrap_err().to_string();
+        assert!(err.contains(":1: expected 8 numbers"), "{err}");
+    }
+
+    #[test]
+    fn kitti_lines() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("k.txt");
+        std::fs::write(&path, "1 0 0 1 0 1 0 2 0 0 1 3\n0 -1 0 4 1 0 0 5 0 0 1 6\n").unwrap();
+        let poses = read_kitti(&path, None).unwrap();
+        assert_eq!(poses[1].t, 1.0);
+        assert_eq!(poses[1].p, Vector3::new(4.0, 5.0, 6.0));
+        assert!((poses[1].q.euler_angles().2 - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+    }
+}

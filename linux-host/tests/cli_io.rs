@@ -1,0 +1,139 @@
+//! `cloi convert` and `cloi eval` from the command line, on small made-up inputs.
+
+use std::io::Write;
+use std::process::Command;
+
+use serde_json::Value;
+
+fn cloi(args: &[&std::ffi::OsStr]) -> (bool, Value, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(args)
+        .output()
+        .unwrap();
+    let stdout: Value = serde_json::from_slice(&out.stdout).unwrap_or(Value::Null);
+    (
+        out.status.success(),
+        stdout,
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+const LOG: &str = "PARAM robot_frontlaser_offset 0.1 h 0\n\
+ODOM 0.0 0.0 0.0 0.0 0.0 0.0 100.0 h 0\n\
+FLASER 3 1.0 2.0 3.0 0.1 0 0 0 0 0 100.05 h 0\n\
+ODOM 1.0 0.0 0.0 0.5 0.0 0.0 100.1 h 0\n\
+WEIRD 1 2 3\n\
+FLASER 3 1.0 2.0 3.0 1.1 0 0 1 0 0 100.15 h 0\n\
+ODOM 2.0 0.0 0.0 0.5 0.0 0.0 100.2 h 0\n";
+
+#[test]
+fn convert_bz2_log_to_bag_and_bag_to_tum() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("tiny.clf.bz2");
+    let mut enc = bzip2::write::BzEncoder::new(
+        std::fs::File::create(&log).unwrap(),
+        bzip2::Compression::fast(),
+    );
+    enc.write_all(LOG.as_bytes()).unwrap();
+    enc.finish().unwrap();
+    let bag = dir.path().join("tiny.mcap");
+    let (ok, v, stderr) = cloi(&["convert".as_ref(), log.as_os_str(), bag.as_os_str()]);
+    assert!(ok, "{stderr}");
+    assert_eq!(v["scans"], 2);
+    assert_eq!(v["odometry"], 3);
+    assert_eq!(v["unknown_lines"]["WEIRD"], 1);
+    // Unknown line types are reported once.
+    assert_eq!(stderr.matches("WEIRD").count(), 1, "{stderr}");
+
+    let tum = dir.path().join("odom.tum");
+    let (ok, v, stderr) = cloi(&["convert".as_ref(), bag.as_os_str(), tum.as_os_str()]);
+    assert!(ok, "{stderr}");
+    assert_eq!(v["odometry"]["poses"], 3);
+    assert_eq!(v["odometry"]["path_length_m"], 2.0);
+    assert_eq!(v["scans"], 2);
+    let text = std::fs::read_to_string(&tum).unwrap();
+    assert_eq!(text.lines().count(), 4);
+    assert!(text
+        .lines()
+        .nth(3)
+        .unwrap()
+        .starts_with("100.200000000 2.000000000 0.0"));
+
+    let (ok, _, stderr) = cloi(&["convert".as_ref(), tum.as_os_str(), bag.as_os_str()]);
+    assert!(!ok);
+    assert!(stderr.contains("cannot convert .tum to .mcap"), "{stderr}");
+}
+
+#[test]
+fn truncated_log_warns_or_fails_with_strict() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("cut.clf");
+    std::fs::write(&log, &LOG[..LOG.len() - 10]).unwrap();
+    let bag = dir.path().join("cut.mcap");
+    let (ok, v, stderr) = cloi(&["convert".as_ref(), log.as_os_str(), bag.as_os_str()]);
+    assert!(ok, "{stderr}");
+    assert_eq!(v["truncated"], true);
+    assert_eq!(v["odometry"], 2);
+    assert!(stderr.contains("cut.clf:7:"), "{stderr}");
+    let (ok, _, stderr) = cloi(&[
+        "convert".as_ref(),
+        "--strict".as_ref(),
+        log.as_os_str(),
+        bag.as_os_str(),
+    ]);
+    assert!(!ok);
+    assert!(stderr.contains("cut.clf:7:"), "{stderr}");
+}
+
+#[test]
+fn eval_relations_and_ref_print_json() {
+    let dir = tempfile::tempdir().unwrap();
+    let tum = dir.path().join("t.tum");
+    std::fs::write(
+        &tum,
+        "1.5 0 0 0 0 0 0 1\n2.5 1 0 0 0 0 0 1\n3.5 2 0.1 0 0 0 0 1\n",
+    )
+    .unwrap();
+    let rel = dir.path().join("r.relations");
+    std::fs::write(
+        &rel,
+        "1.5 2.5 1 0 0 0 0 0\n2.5 3.5 1 0 0 0 0 0\n9 10 1 0 0 0 0 0\n",
+    )
+    .unwrap();
+    let (ok, v, stderr) = cloi(&[
+        "eval".as_ref(),
+        "relations".as_ref(),
+        "--trajectory".as_ref(),
+        tum.as_os_str(),
+        "--relations".as_ref(),
+        rel.as_os_str(),
+    ]);
+    assert!(ok, "{stderr}");
+    assert_eq!(v["pairs_used"], 2);
+    assert_eq!(v["pairs_missing"], 1);
+    assert!((v["trans_mean_m"].as_f64().unwrap() - 0.05).abs() < 1e-12);
+    for key in ["trans_std_m", "rot_mean_deg", "rot_std_deg"] {
+        assert!(v[key].is_number(), "{key}");
+    }
+
+    let reference = dir.path().join("x.gfs_reference_poses.txt");
+    std::fs::write(
+        &reference,
+        "# t idx x y theta\n1.5 0 0 0 0\n2.5 1 1 0 0\n3.5 2 2 0 0\n",
+    )
+    .unwrap();
+    let (ok, v, stderr) = cloi(&[
+        "eval".as_ref(),
+        "ref".as_ref(),
+        "--trajectory".as_ref(),
+        tum.as_os_str(),
+        "--reference".as_ref(),
+        reference.as_os_str(),
+        "--max-distance".as_ref(),
+        "1.5".as_ref(),
+    ]);
+    assert!(ok, "{stderr}");
+    assert_eq!(v["relations"], 2);
+    assert_eq!(v["pairs_used"], 2);
+    assert!((v["trans_mean_m"].as_f64().unwrap() - 0.05).abs() < 1e-12);
+}
