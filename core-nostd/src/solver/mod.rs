@@ -83,6 +83,9 @@ pub struct SolverOptions {
     /// solver converges with the loops that pass (chi2 below this value, 3 degrees of
     /// freedom) before every component is chosen by its residual. 0 disables it.
     pub gate_chi2: f64,
+    /// Levenberg-Marquardt's initial damping, as a fraction of the largest diagonal entry of
+    /// `H`.
+    pub lm_tau: f64,
 }
 
 impl Default for SolverOptions {
@@ -97,6 +100,7 @@ impl Default for SolverOptions {
             stages: 1,
             stage_iterations: 10,
             gate_chi2: 0.0,
+            lm_tau: 1e-5,
         }
     }
 }
@@ -313,7 +317,7 @@ pub fn solve(
     }
     if options.linear_init && stages == 1 {
         for stage in [linearize::Stage::Headings, linearize::Stage::Positions] {
-            if let Err(e) = linear_step(nodes, edges, ws, 0.0, false, stage, warm0) {
+            if let Err(e) = linear_step(nodes, edges, ws, 0.0, false, stage, warm0, 0.0) {
                 return fail(e, report);
             }
             apply_step(nodes, ws.var_node, ws.rhs, vars);
@@ -474,6 +478,7 @@ fn linear_step(
     saved_rhs: bool,
     stage: linearize::Stage,
     warm: Warm,
+    tau: f64,
 ) -> Result<(f64, f64, f64), SolveError> {
     let vars = ws.key.vars;
     let nnz = ws.key.nnz;
@@ -500,7 +505,7 @@ fn linear_step(
         for d in ws.diag.iter().take(vars) {
             max_diag = max_diag.max(d[0]).max(d[4]).max(d[8]);
         }
-        lambda = 1e-5 * max_diag.max(1e-12);
+        lambda = tau * max_diag.max(1e-12);
     }
     for d in ws.diag.iter_mut().take(vars) {
         if lambda > 0.0 {
@@ -568,7 +573,16 @@ fn gauss_newton(
     let mut done = 0;
     while done < max_iterations {
         let changed = refresh_structure(nodes, edges, ws, gauge_first, limit, warm, report)?;
-        linear_step(nodes, edges, ws, 0.0, false, linearize::Stage::Full, warm)?;
+        linear_step(
+            nodes,
+            edges,
+            ws,
+            0.0,
+            false,
+            linearize::Stage::Full,
+            warm,
+            0.0,
+        )?;
         report.iterations += 1;
         done += 1;
         let n = nodes.len();
@@ -646,6 +660,7 @@ fn levenberg_marquardt(
             true,
             linearize::Stage::Full,
             Warm::Off,
+            options.lm_tau,
         );
         report.iterations += 1;
         match step {
