@@ -470,6 +470,7 @@ impl FromIterator<usize> for Lens {
 /// `1e-5` times the largest diagonal entry of `H`), factorizes and solves; the step is left in
 /// `ws.rhs` (by position). Returns the robust cost and chi2 at the estimate and the damping
 /// used.
+#[allow(clippy::too_many_arguments)]
 fn linear_step(
     nodes: &[PoseNode],
     edges: &[PoseEdge],
