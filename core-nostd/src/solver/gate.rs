@@ -6,8 +6,11 @@
 //! uncertainty of that prediction*: chaining the odometry edges gives the relative pose `T` of
 //! the pair and, by first-order compounding, its covariance `S_T`; a loop with measurement `z`
 //! and covariance `S_z` passes when `(T - z)^T (S_T + S_z)^-1 (T - z)` is below a chi2
-//! threshold. The solver first converges with the passed loops only (nominal component), then
-//! lets every max-mixture edge choose its component freely.
+//! threshold. The warm start then runs in three phases: a few iterations with only the passed
+//! loops, each weighted by dynamic covariance scaling of its gate distance (a loop that odometry
+//! predicts well pulls harder); then dynamic covariance scaling of every max-mixture loop by its
+//! current residual until that settles; then the free max-mixture solve, where every edge picks
+//! its most likely component.
 //!
 //! The chain's covariance in the world frame is kept per node: `S_b = J_a S_a J_a^T +
 //! J_z S_z J_z^T`, so the relative covariance of nodes `a < b` is recovered in O(1) as

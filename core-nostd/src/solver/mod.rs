@@ -13,6 +13,12 @@
 //! Gauge: the first node is held fixed unless the graph has a prior edge; nodes flagged
 //! `fixed` never move.
 //!
+//! Robust solves: max-mixture edges whose chosen component scales their information below
+//! [`INACTIVE_SCALE`] are left out of the linear system (and out of the factor's pattern, which
+//! is re-analysed when that set changes), so rejected loop closures cost no fill. With
+//! `gate_chi2 > 0` a max-mixture solve starts with the warm start of module `gate`, which is
+//! what lets it begin from a drifted odometry guess.
+//!
 //! Stopping rules (`cost` is the robust cost, equal to the chi2 without robust models):
 //! * **Gauss-Newton**: converged when an iteration lowers the cost by less than
 //!   `relative_tolerance * cost` (an increase counts as not converged), or when the largest
@@ -79,9 +85,9 @@ pub struct SolverOptions {
     /// Most Gauss-Newton iterations of each stage but the last, and of the gated warm start.
     pub stage_iterations: u32,
     /// Warm start of max-mixture loops: when positive, each max-mixture loop closure is first
-    /// tested against the odometry chain's prediction and its covariance (module `gate`); the
-    /// solver converges with the loops that pass (chi2 below this value, 3 degrees of
-    /// freedom) before every component is chosen by its residual. 0 disables it.
+    /// tested against the odometry chain's prediction and its covariance (module `gate`,
+    /// chi2 threshold with 3 degrees of freedom, e.g. 16.27 for 99.9 %), and the solve starts
+    /// with the phases described there. 0 disables it (Gauss-Newton only).
     pub gate_chi2: f64,
     /// Levenberg-Marquardt's initial damping, as a fraction of the largest diagonal entry of
     /// `H`.
