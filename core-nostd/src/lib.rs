@@ -27,6 +27,7 @@
 #[macro_use]
 mod fmt;
 
+pub mod backend;
 pub mod error;
 pub mod geom;
 pub mod graph;

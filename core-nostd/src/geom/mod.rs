@@ -8,3 +8,6 @@ pub use covariance::{
     zero_constraint_information, Cov3, Info3, UncertainPose, NEAR_SINGULAR_RATIO,
 };
 pub use se2::{wrap_angle, JacobianPair, Se2};
+
+#[cfg(test)]
+mod proptests;
