@@ -17,6 +17,7 @@
 //! `R_a^T (S_b - J S_a J^T) R_a` with `J` the Jacobian of `P_a (+) T` with respect to `P_a`.
 
 use super::cholesky::{chol_inverse, mul_v};
+use super::linearize::info_block;
 use super::workspace::{Block, SolverBuffers};
 use crate::geom::{wrap_angle, Se2};
 use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
@@ -72,21 +73,6 @@ fn add(a: &Block, b: &Block) -> Block {
 fn spd_inverse(m: &Block) -> Option<Block> {
     let li = chol_inverse(m)?;
     Some(mul(&transpose(&li), &li))
-}
-
-fn info_block(e: &PoseEdge) -> Block {
-    let m = &e.information;
-    [
-        m[(0, 0)],
-        m[(0, 1)],
-        m[(0, 2)],
-        m[(1, 0)],
-        m[(1, 1)],
-        m[(1, 2)],
-        m[(2, 0)],
-        m[(2, 1)],
-        m[(2, 2)],
-    ]
 }
 
 /// Jacobians of `p (+) q` with respect to `p` and to `q`.
