@@ -92,6 +92,9 @@ pub struct OptimizeArgs {
     /// Most iterations per stage (all stages but the last).
     #[arg(long, default_value_t = 10)]
     pub stage_iters: u32,
+    /// Levenberg-Marquardt's initial damping relative to the largest diagonal entry of H.
+    #[arg(long, default_value_t = 1e-5)]
+    pub lm_tau: f64,
     /// Skip the linear (LAGO-style) re-initialisation of headings and positions.
     #[arg(long)]
     pub no_linear_init: bool,
@@ -319,6 +322,7 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
         linear_init: !args.no_linear_init,
         stages: args.stages,
         gate_chi2: args.gate_chi2,
+        lm_tau: args.lm_tau,
         stage_iterations: args.stage_iters,
         ..SolverOptions::default()
     };

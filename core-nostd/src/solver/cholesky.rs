@@ -57,7 +57,7 @@ pub(crate) fn mul_tv(m: &Block, v: &Vec3) -> Vec3 {
 /// The inverse of the lower Cholesky factor of the symmetric block `a` (lower triangle read),
 /// or `None` when `a` is not positive definite.
 #[inline]
-fn chol_inverse(a: &Block) -> Option<Block> {
+pub(crate) fn chol_inverse(a: &Block) -> Option<Block> {
     let d0 = a[0];
     if d0.is_nan() || d0 <= 0.0 {
         return None;

@@ -6,17 +6,20 @@
 //! uncertainty of that prediction*: chaining the odometry edges gives the relative pose `T` of
 //! the pair and, by first-order compounding, its covariance `S_T`; a loop with measurement `z`
 //! and covariance `S_z` passes when `(T - z)^T (S_T + S_z)^-1 (T - z)` is below a chi2
-//! threshold. The solver first converges with the passed loops only (nominal component), then
-//! lets every max-mixture edge choose its component freely.
+//! threshold. The warm start then runs in three phases: a few iterations with only the passed
+//! loops, each weighted by dynamic covariance scaling of its gate distance (a loop that odometry
+//! predicts well pulls harder); then dynamic covariance scaling of every max-mixture loop by its
+//! current residual until that settles; then the free max-mixture solve, where every edge picks
+//! its most likely component.
 //!
 //! The chain's covariance in the world frame is kept per node: `S_b = J_a S_a J_a^T +
 //! J_z S_z J_z^T`, so the relative covariance of nodes `a < b` is recovered in O(1) as
 //! `R_a^T (S_b - J S_a J^T) R_a` with `J` the Jacobian of `P_a (+) T` with respect to `P_a`.
 
-use nalgebra::{Matrix3, Vector3};
-
+use super::cholesky::{chol_inverse, mul_v};
+use super::linearize::info_block;
 use super::workspace::{Block, SolverBuffers};
-use crate::geom::{spd_inverse, squared_mahalanobis, wrap_angle, Se2, UncertainPose};
+use crate::geom::{wrap_angle, Se2};
 use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
 
 const NONE: u32 = u32::MAX;
@@ -36,18 +39,75 @@ pub(crate) fn stored_weight(flag: u8) -> f64 {
     }
 }
 
-fn to_block(m: &Matrix3<f64>) -> Block {
-    let mut b = [0.0; 9];
+// Small block algebra (row-major 3x3), kept local so the gate adds no new users of the
+// generic matrix code that the rest of the core inlines.
+
+fn mul(a: &Block, b: &Block) -> Block {
+    let mut o = [0.0; 9];
     for r in 0..3 {
         for c in 0..3 {
-            b[3 * r + c] = m[(r, c)];
+            o[3 * r + c] = a[3 * r] * b[c] + a[3 * r + 1] * b[3 + c] + a[3 * r + 2] * b[6 + c];
         }
     }
-    b
+    o
 }
 
-fn from_block(b: &Block) -> Matrix3<f64> {
-    Matrix3::from_row_slice(b)
+fn transpose(a: &Block) -> Block {
+    [a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8]]
+}
+
+/// `j m j^T`.
+fn sandwich(j: &Block, m: &Block) -> Block {
+    mul(&mul(j, m), &transpose(j))
+}
+
+fn add(a: &Block, b: &Block) -> Block {
+    let mut o = *a;
+    for (x, y) in o.iter_mut().zip(b) {
+        *x += y;
+    }
+    o
+}
+
+/// Inverse of a symmetric positive definite block, from its Cholesky factor.
+fn spd_inverse(m: &Block) -> Option<Block> {
+    let li = chol_inverse(m)?;
+    Some(mul(&transpose(&li), &li))
+}
+
+/// Jacobians of `p (+) q` with respect to `p` and to `q`.
+fn compose_jacobians(p: &Se2, q: &Se2) -> (Block, Block) {
+    let (c, s) = (libm::cos(p.theta), libm::sin(p.theta));
+    (
+        [
+            1.0,
+            0.0,
+            -s * q.x - c * q.y,
+            0.0,
+            1.0,
+            c * q.x - s * q.y,
+            0.0,
+            0.0,
+            1.0,
+        ],
+        [c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0],
+    )
+}
+
+/// Jacobian of `q^-1` with respect to `q`.
+fn inverse_jacobian(q: &Se2) -> Block {
+    let (c, s) = (libm::cos(q.theta), libm::sin(q.theta));
+    [
+        -c,
+        -s,
+        s * q.x - c * q.y,
+        s,
+        -c,
+        c * q.x + s * q.y,
+        0.0,
+        0.0,
+        -1.0,
+    ]
 }
 
 /// Sets [`GATE_PASSED`] on every edge that is not a max-mixture loop and on every max-mixture
@@ -70,28 +130,31 @@ pub(crate) fn gate_loops(
     }
     // Chain poses (in `saved`) and world-frame covariances (in `work`), per segment.
     let mut seg = 0u32;
-    let mut cur = UncertainPose::exact(Se2::IDENTITY);
+    let mut pose = Se2::IDENTITY;
+    let mut cov: Block = [0.0; 9];
     for k in 0..n {
-        ws.saved[k] = cur.pose;
-        ws.work[k] = to_block(&cur.cov);
+        ws.saved[k] = pose;
+        ws.work[k] = cov;
         segment[k] = seg;
         let step = edges.get(odo[k] as usize).and_then(|e| {
-            let cov = spd_inverse(&e.information)?;
-            let rel = UncertainPose {
-                pose: e.measurement,
-                cov,
-            };
+            let c = spd_inverse(&info_block(e))?;
             Some(if e.from.0 as usize == k {
-                rel
+                (e.measurement, c)
             } else {
-                rel.inverse()
+                let ji = inverse_jacobian(&e.measurement);
+                (e.measurement.inverse(), sandwich(&ji, &c))
             })
         });
         match step {
-            Some(rel) if odo[k] != NONE => cur = cur.compound(&rel),
+            Some((z, cz)) if odo[k] != NONE => {
+                let (ja, jb) = compose_jacobians(&pose, &z);
+                cov = add(&sandwich(&ja, &cov), &sandwich(&jb, &cz));
+                pose = pose.compose(&z);
+            }
             _ => {
                 seg += 1;
-                cur = UncertainPose::exact(Se2::IDENTITY);
+                pose = Se2::IDENTITY;
+                cov = [0.0; 9];
             }
         }
     }
@@ -107,45 +170,34 @@ pub(crate) fn gate_loops(
         if i >= n || j >= n || segment[i] != segment[j] {
             continue;
         }
-        let Some(cov_z) = spd_inverse(&e.information) else {
+        let Some(cov_z) = spd_inverse(&info_block(e)) else {
             continue;
         };
         // Measurement from the earlier node to the later one.
-        let (a, b, z) = if i < j {
-            (
-                i,
-                j,
-                UncertainPose {
-                    pose: e.measurement,
-                    cov: cov_z,
-                },
-            )
+        let (a, b, z, cov_z) = if i < j {
+            (i, j, e.measurement, cov_z)
         } else {
-            (
-                j,
-                i,
-                UncertainPose {
-                    pose: e.measurement,
-                    cov: cov_z,
-                }
-                .inverse(),
-            )
+            let ji = inverse_jacobian(&e.measurement);
+            (j, i, e.measurement.inverse(), sandwich(&ji, &cov_z))
         };
         let (pa, pb) = (ws.saved[a], ws.saved[b]);
         let t = pa.between(&pb);
-        let (ja, _) = pa.compose_jacobians(&t);
-        let sa = from_block(&ws.work[a]);
-        let sb = from_block(&ws.work[b]);
-        let (c, s) = (libm::cos(pa.theta), libm::sin(pa.theta));
-        let rot = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
-        let cov_t = rot.transpose() * (sb - ja * sa * ja.transpose()) * rot;
-        let d = Vector3::new(
-            t.x - z.pose.x,
-            t.y - z.pose.y,
-            wrap_angle(t.theta - z.pose.theta),
-        );
-        let total = (cov_t + cov_t.transpose()) * 0.5 + z.cov;
-        if let Some(m) = squared_mahalanobis(&d, &total) {
+        let (ja, rot) = compose_jacobians(&pa, &t);
+        let mut grown = ws.work[b];
+        for (g, p) in grown.iter_mut().zip(sandwich(&ja, &ws.work[a])) {
+            *g -= p;
+        }
+        let cov_t = sandwich(&transpose(&rot), &grown);
+        let mut total = add(&cov_t, &transpose(&cov_t));
+        for (v, c) in total.iter_mut().zip(cov_z) {
+            *v = 0.5 * *v + c;
+        }
+        let d = [t.x - z.x, t.y - z.y, wrap_angle(t.theta - z.theta)];
+        let maha = chol_inverse(&total).map(|li| {
+            let y = mul_v(&li, &d);
+            y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
+        });
+        if let Some(m) = maha {
             if m <= chi2 {
                 // Dynamic covariance scaling on the gate's distance: a loop that odometry
                 // predicts well pulls harder than one at the edge of the gate.

@@ -79,8 +79,9 @@ pub(crate) fn quad(m: &Block, e: &Vec3) -> f64 {
         + 2.0 * (m[1] * e[0] * e[1] + m[2] * e[0] * e[2] + m[5] * e[1] * e[2])
 }
 
+/// The information of an edge as a block.
 #[inline(always)]
-fn info_block(edge: &PoseEdge) -> Block {
+pub(crate) fn info_block(edge: &PoseEdge) -> Block {
     let m = &edge.information;
     [
         m[(0, 0)],

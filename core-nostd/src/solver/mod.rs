@@ -13,6 +13,12 @@
 //! Gauge: the first node is held fixed unless the graph has a prior edge; nodes flagged
 //! `fixed` never move.
 //!
+//! Robust solves: max-mixture edges whose chosen component scales their information below
+//! [`INACTIVE_SCALE`] are left out of the linear system (and out of the factor's pattern, which
+//! is re-analysed when that set changes), so rejected loop closures cost no fill. With
+//! `gate_chi2 > 0` a max-mixture solve starts with the warm start of module `gate`, which is
+//! what lets it begin from a drifted odometry guess.
+//!
 //! Stopping rules (`cost` is the robust cost, equal to the chi2 without robust models):
 //! * **Gauss-Newton**: converged when an iteration lowers the cost by less than
 //!   `relative_tolerance * cost` (an increase counts as not converged), or when the largest
@@ -81,10 +87,13 @@ pub struct SolverOptions {
     /// Most Gauss-Newton iterations of each stage but the last, and of the gated warm start.
     pub stage_iterations: u32,
     /// Warm start of max-mixture loops: when positive, each max-mixture loop closure is first
-    /// tested against the odometry chain's prediction and its covariance (module `gate`); the
-    /// solver converges with the loops that pass (chi2 below this value, 3 degrees of
-    /// freedom) before every component is chosen by its residual. 0 disables it.
+    /// tested against the odometry chain's prediction and its covariance (module `gate`,
+    /// chi2 threshold with 3 degrees of freedom, e.g. 16.27 for 99.9 %), and the solve starts
+    /// with the phases described there. 0 disables it (Gauss-Newton only).
     pub gate_chi2: f64,
+    /// Levenberg-Marquardt's initial damping, as a fraction of the largest diagonal entry of
+    /// `H`.
+    pub lm_tau: f64,
 }
 
 impl Default for SolverOptions {
@@ -99,6 +108,7 @@ impl Default for SolverOptions {
             stages: 1,
             stage_iterations: 10,
             gate_chi2: 0.0,
+            lm_tau: 1e-5,
         }
     }
 }
@@ -315,7 +325,7 @@ pub fn solve(
     }
     if options.linear_init && stages == 1 {
         for stage in [linearize::Stage::Headings, linearize::Stage::Positions] {
-            if let Err(e) = linear_step(nodes, edges, ws, 0.0, false, stage, warm0) {
+            if let Err(e) = linear_step(nodes, edges, ws, 0.0, false, stage, warm0, 0.0) {
                 return fail(e, report);
             }
             apply_step(nodes, ws.var_node, ws.rhs, vars);
@@ -468,6 +478,7 @@ impl FromIterator<usize> for Lens {
 /// `1e-5` times the largest diagonal entry of `H`), factorizes and solves; the step is left in
 /// `ws.rhs` (by position). Returns the robust cost and chi2 at the estimate and the damping
 /// used.
+#[allow(clippy::too_many_arguments)]
 fn linear_step(
     nodes: &[PoseNode],
     edges: &[PoseEdge],
@@ -476,6 +487,7 @@ fn linear_step(
     saved_rhs: bool,
     stage: linearize::Stage,
     warm: Warm,
+    tau: f64,
 ) -> Result<(f64, f64, f64), SolveError> {
     let vars = ws.key.vars;
     let nnz = ws.key.nnz;
@@ -502,7 +514,7 @@ fn linear_step(
         for d in ws.diag.iter().take(vars) {
             max_diag = max_diag.max(d[0]).max(d[4]).max(d[8]);
         }
-        lambda = 1e-5 * max_diag.max(1e-12);
+        lambda = tau * max_diag.max(1e-12);
     }
     for d in ws.diag.iter_mut().take(vars) {
         if lambda > 0.0 {
@@ -570,7 +582,16 @@ fn gauss_newton(
     let mut done = 0;
     while done < max_iterations {
         let changed = refresh_structure(nodes, edges, ws, gauge_first, limit, warm, report)?;
-        linear_step(nodes, edges, ws, 0.0, false, linearize::Stage::Full, warm)?;
+        linear_step(
+            nodes,
+            edges,
+            ws,
+            0.0,
+            false,
+            linearize::Stage::Full,
+            warm,
+            0.0,
+        )?;
         report.iterations += 1;
         done += 1;
         let n = nodes.len();
@@ -648,6 +669,7 @@ fn levenberg_marquardt(
             true,
             linearize::Stage::Full,
             Warm::Off,
+            options.lm_tau,
         );
         report.iterations += 1;
         match step {
