@@ -19,6 +19,8 @@ pub struct Cli {
 pub enum Command {
     /// Print the static memory footprint of every profile and check it against its budget.
     Budget(cloi_budget::cli::BudgetArgs),
+    /// Simulate a robot in a world and write a ROS 2 bag with exact ground truth.
+    Sim(crate::sim::command::SimArgs),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -28,5 +30,6 @@ pub enum Command {
 pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
     match cli.command {
         Command::Budget(args) => cloi_budget::cli::run(&args, out),
+        Command::Sim(args) => crate::sim::command::run(&args, out),
     }
 }

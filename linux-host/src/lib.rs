@@ -5,3 +5,5 @@
 
 pub mod cli;
 pub mod dataset;
+pub mod io;
+pub mod sim;

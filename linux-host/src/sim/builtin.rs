@@ -18,7 +18,11 @@ fn sp<T>(v: T) -> Spanned<T> {
 
 /// A straight wall from `a` to `b` (axis-aligned) with door gaps given as intervals along it.
 fn wall_with_doors(walls: &mut Vec<Spanned<WallSpec>>, a: P2, b: P2, doors: &[(f64, f64)]) {
-    let axis = if (a[0] - b[0]).abs() > (a[1] - b[1]).abs() { 0 } else { 1 };
+    let axis = if (a[0] - b[0]).abs() > (a[1] - b[1]).abs() {
+        0
+    } else {
+        1
+    };
     let mut pos = a[axis];
     let end = b[axis];
     let at = |v: f64| {
@@ -303,7 +307,14 @@ pub fn office() -> WorldFile {
     }
     // Glass meeting room with a door on its west side.
     walls.push(sp(WallSpec {
-        points: vec![[30.0, 17.0], [30.0, 15.0], [38.0, 15.0], [38.0, 23.0], [30.0, 23.0], [30.0, 18.0]],
+        points: vec![
+            [30.0, 17.0],
+            [30.0, 15.0],
+            [38.0, 15.0],
+            [38.0, 23.0],
+            [30.0, 23.0],
+            [30.0, 18.0],
+        ],
         closed: false,
         material: Material::Glass,
         height: None,
@@ -379,7 +390,10 @@ pub fn airport() -> WorldFile {
             vec![[0.0, 80.0], [0.0, 0.0], [160.0, 0.0], [160.0, 80.0]],
             Material::Wall,
         )),
-        sp(plain_wall(vec![[160.0, 80.0], [0.0, 80.0]], Material::Glass)),
+        sp(plain_wall(
+            vec![[160.0, 80.0], [0.0, 80.0]],
+            Material::Glass,
+        )),
     ];
     // Shops along the south wall with glass fronts.
     for (x0, x1) in [(40.0, 70.0), (100.0, 130.0)] {
@@ -400,7 +414,12 @@ pub fn airport() -> WorldFile {
     for i in 0..7 {
         let x = 35.0 + 20.0 * f64::from(i);
         for y in [25.0, 55.0] {
-            boxes.push(boxed([x - 0.5, y - 0.5], [x + 0.5, y + 0.5], Material::Pillar, 12.0));
+            boxes.push(boxed(
+                [x - 0.5, y - 0.5],
+                [x + 0.5, y + 0.5],
+                Material::Pillar,
+                12.0,
+            ));
         }
     }
     for (x0, x1) in [(30.0, 60.0), (90.0, 120.0)] {
@@ -494,12 +513,20 @@ mod tests {
 
     #[test]
     fn builtin_worlds_are_large_enough_and_their_routes_are_collision_free() {
-        for (name, min_area, clearance) in [("home", 330.0, 0.15), ("office", 900.0, 0.15), ("airport", 10_000.0, 0.3)] {
+        for (name, min_area, clearance) in [
+            ("home", 330.0, 0.15),
+            ("office", 900.0, 0.15),
+            ("airport", 10_000.0, 0.3),
+        ] {
             let file = builtin(name, 100.0).expect("exists");
             let text = file.to_toml().expect("serialisable");
             let back = WorldFile::parse(&text, name).expect("round trip");
             let world = World::from_file(&back);
-            assert!(world.bounding_area() >= min_area, "{name}: {}", world.bounding_area());
+            assert!(
+                world.bounding_area() >= min_area,
+                "{name}: {}",
+                world.bounding_area()
+            );
             let pts = route_points(&world.route);
             for pair in pts.windows(2) {
                 assert!(

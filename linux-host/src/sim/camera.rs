@@ -90,7 +90,11 @@ impl CameraParams {
             lens,
             tilt: tilt_deg.to_radians(),
             yaw: yaw_deg.to_radians(),
-            mount: [0.1 * yaw_deg.to_radians().cos(), 0.1 * yaw_deg.to_radians().sin(), 0.35],
+            mount: [
+                0.1 * yaw_deg.to_radians().cos(),
+                0.1 * yaw_deg.to_radians().sin(),
+                0.35,
+            ],
             rate_hz: 10.0,
             exposure: 0.015,
             gain_sigma: 0.05,
@@ -161,7 +165,8 @@ impl CameraParams {
                     let t2 = th * th;
                     let f = th * (1.0 + t2 * (k[0] + t2 * (k[1] + t2 * (k[2] + t2 * k[3])))) - d;
                     let df = 1.0
-                        + t2 * (3.0 * k[0] + t2 * (5.0 * k[1] + t2 * (7.0 * k[2] + t2 * 9.0 * k[3])));
+                        + t2 * (3.0 * k[0]
+                            + t2 * (5.0 * k[1] + t2 * (7.0 * k[2] + t2 * 9.0 * k[3])));
                     let step = f / df;
                     th -= step;
                     if step.abs() < 1e-12 {
@@ -257,7 +262,11 @@ impl Camera {
         let p = &self.params;
         let n = (p.width * p.height) as usize;
         let mut acc = vec![0f32; n];
-        let offsets: &[f64] = if p.motion_blur { &[-0.5, 0.0, 0.5] } else { &[0.0] };
+        let offsets: &[f64] = if p.motion_blur {
+            &[-0.5, 0.0, 0.5]
+        } else {
+            &[0.0]
+        };
         let mut tmp = vec![0f32; n];
         for off in offsets {
             let (x, y, th) = pose_at(t + off * p.exposure);
@@ -363,8 +372,13 @@ fn apply_dirty_lens(img: &mut [f32], w: usize, h: usize, d: DirtyLens) {
     // A fixed smudge pattern per fault: a few dark blobs.
     let blobs: Vec<[f64; 3]> = (0..5u64)
         .map(|k| {
-            let hsh = |i: u64| texture::hash01(d.seed.wrapping_add(k * 7919 + i) as i64, 17, 99) as f64;
-            [hsh(1) * w as f64, hsh(2) * h as f64, (0.08 + 0.12 * hsh(3)) * w as f64]
+            let hsh =
+                |i: u64| texture::hash01(d.seed.wrapping_add(k * 7919 + i) as i64, 17, 99) as f64;
+            [
+                hsh(1) * w as f64,
+                hsh(2) * h as f64,
+                (0.08 + 0.12 * hsh(3)) * w as f64,
+            ]
         })
         .collect();
     for y in 0..h {
@@ -389,7 +403,11 @@ mod tests {
     /// Camera at the origin of an empty room heading +x; body (x, y, z) of a point.
     fn optical_of(p: &CameraParams, body: [f64; 3]) -> [f64; 3] {
         let r = p.body_from_optical();
-        let q = [body[0] - p.mount[0], body[1] - p.mount[1], body[2] - p.mount[2]];
+        let q = [
+            body[0] - p.mount[0],
+            body[1] - p.mount[1],
+            body[2] - p.mount[2],
+        ];
         [
             r[0][0] * q[0] + r[0][1] * q[1] + r[0][2] * q[2],
             r[1][0] * q[0] + r[1][1] * q[1] + r[1][2] * q[2],
@@ -414,7 +432,9 @@ mod tests {
                 Lens::Pinhole => p.cy - p.fy * th.tan(),
                 Lens::KannalaBrandt(k) => {
                     let t2 = th * th;
-                    p.cy - p.fy * th * (1.0 + k[0] * t2 + k[1] * t2 * t2 + k[2] * t2.powi(3) + k[3] * t2.powi(4))
+                    p.cy - p.fy
+                        * th
+                        * (1.0 + k[0] * t2 + k[1] * t2 * t2 + k[2] * t2.powi(3) + k[3] * t2.powi(4))
                 }
             };
             assert!((uv[0] - p.cx).abs() < 1e-9, "{uv:?}");
@@ -463,8 +483,15 @@ mod tests {
                 }
             }
             assert!(n >= 1.0, "light not seen");
-            let uv = p.project(optical_of(&p, [c[0], c[1], 2.5])).expect("visible");
-            assert!((su / n - uv[0]).abs() < 1.0 && (sv / n - uv[1]).abs() < 1.0, "{} {} vs {uv:?}", su / n, sv / n);
+            let uv = p
+                .project(optical_of(&p, [c[0], c[1], 2.5]))
+                .expect("visible");
+            assert!(
+                (su / n - uv[0]).abs() < 1.0 && (sv / n - uv[1]).abs() < 1.0,
+                "{} {} vs {uv:?}",
+                su / n,
+                sv / n
+            );
         }
     }
 }

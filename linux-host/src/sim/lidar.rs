@@ -217,7 +217,7 @@ legs = [{ type = "waypoints", points = [[3, 3]] }]
         assert!((at(-90) - 3.0).abs() < 1e-5); // wall y = 0
         assert!((at(90) - 3.0).abs() < 1e-5); // glass y = 6, opaque here
         assert!((at(-180) - 2.0).abs() < 1e-5); // wall x = 0
-        // 45 deg: hits the glass at y = 6 after 3 * sqrt(2).
+                                                // 45 deg: hits the glass at y = 6 after 3 * sqrt(2).
         assert!((at(45) - 3.0 * 2f32.sqrt()).abs() < 1e-5);
         // Glass fully transparent: the beam continues to y = 8.
         p.glass_pass = 1.0;

@@ -109,7 +109,8 @@ impl WheelOdometry {
         let mut out = [0.0; 2];
         for k in 0..2 {
             let n: f64 = rng.sample(StandardNormal);
-            out[k] = true_travel[k] * self.scale[k] * slip_scale + n * (var * true_travel[k].abs()).sqrt();
+            out[k] = true_travel[k] * self.scale[k] * slip_scale
+                + n * (var * true_travel[k].abs()).sqrt();
         }
         out
     }
@@ -262,8 +263,14 @@ mod tests {
             let (m, sd) = mean_sd(xs);
             let expected = sign * d * k * slip_scale;
             // Standard error of the mean is sd / 200.
-            assert!((m - expected).abs() < 4.0 * expected_sd / 200.0, "{m} vs {expected}");
-            assert!((sd / expected_sd - 1.0).abs() < 0.03, "{sd} vs {expected_sd}");
+            assert!(
+                (m - expected).abs() < 4.0 * expected_sd / 200.0,
+                "{m} vs {expected}"
+            );
+            assert!(
+                (sd / expected_sd - 1.0).abs() < 0.03,
+                "{sd} vs {expected_sd}"
+            );
         }
     }
 

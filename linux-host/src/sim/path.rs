@@ -205,10 +205,8 @@ impl Trajectory {
                 None => self.end,
             };
         };
-        if t > m.t0 + m.duration {
-            if idx == self.motions.len() {
-                return self.end;
-            }
+        if t > m.t0 + m.duration && idx == self.motions.len() {
+            return self.end;
         }
         let tau = (t - m.t0).min(m.duration);
         match m.kind {

@@ -322,6 +322,11 @@ impl fmt::Display for WorldError {
 
 impl std::error::Error for WorldError {}
 
+/// `a > b`, false for NaN (reads better than a negated comparison).
+fn greater(a: f64, b: f64) -> bool {
+    a > b
+}
+
 fn line_of(text: &str, offset: usize) -> usize {
     text.as_bytes()
         .iter()
@@ -401,7 +406,8 @@ impl WorldFile {
                 }
             }
         }
-        let rect_ok = |min: &P2, max: &P2| fin(min) && fin(max) && min[0] < max[0] && min[1] < max[1];
+        let rect_ok =
+            |min: &P2, max: &P2| fin(min) && fin(max) && min[0] < max[0] && min[1] < max[1];
         for b in &self.boxes {
             if !rect_ok(&b.get_ref().min, &b.get_ref().max) {
                 return Err((Some(b.span()), "box needs min < max".into()));
@@ -414,7 +420,11 @@ impl WorldFile {
         }
         for r in &self.regions {
             let spec = r.get_ref();
-            if !rect_ok(&spec.min, &spec.max) || !(spec.scale > 0.0) || !(spec.noise >= 0.0) {
+            if !rect_ok(&spec.min, &spec.max)
+                || !greater(spec.scale, 0.0)
+                || spec.noise.is_nan()
+                || spec.noise < 0.0
+            {
                 return Err((
                     Some(r.span()),
                     "region needs min < max, scale > 0, noise >= 0".into(),
@@ -423,8 +433,11 @@ impl WorldFile {
         }
         for p in &self.posters {
             let spec = p.get_ref();
-            if dist(spec.a, spec.b) < 1e-3 || !(spec.top > spec.bottom) {
-                return Err((Some(p.span()), "poster needs a != b and top > bottom".into()));
+            if dist(spec.a, spec.b) < 1e-3 || !greater(spec.top, spec.bottom) {
+                return Err((
+                    Some(p.span()),
+                    "poster needs a != b and top > bottom".into(),
+                ));
             }
         }
         for f in &self.faults {
@@ -444,7 +457,7 @@ impl WorldFile {
                 }
                 LegSpec::Zigzag {
                     min, max, spacing, ..
-                } if !rect_ok(min, max) || !(*spacing > 0.05) => {
+                } if !rect_ok(min, max) || !greater(*spacing, 0.05) => {
                     return Err((
                         Some(self.route.span()),
                         "zigzag needs min < max and spacing > 0.05 m".into(),
@@ -591,8 +604,12 @@ impl Grid {
 }
 
 fn cell_of(origin: P2, cell: f64, nx: usize, ny: usize, p: P2) -> (usize, usize) {
-    let x = ((p[0] - origin[0]) / cell).floor().clamp(0.0, (nx - 1) as f64) as usize;
-    let y = ((p[1] - origin[1]) / cell).floor().clamp(0.0, (ny - 1) as f64) as usize;
+    let x = ((p[0] - origin[0]) / cell)
+        .floor()
+        .clamp(0.0, (nx - 1) as f64) as usize;
+    let y = ((p[1] - origin[1]) / cell)
+        .floor()
+        .clamp(0.0, (ny - 1) as f64) as usize;
     (x, y)
 }
 
@@ -677,12 +694,7 @@ impl World {
                 Material::Furniture => 0.8,
                 _ => h,
             });
-            let c = [
-                b.min,
-                [b.max[0], b.min[1]],
-                b.max,
-                [b.min[0], b.max[1]],
-            ];
+            let c = [b.min, [b.max[0], b.min[1]], b.max, [b.min[0], b.max[1]]];
             for i in 0..4 {
                 push(c[i], c[(i + 1) % 4], b.material, height);
             }
@@ -813,7 +825,8 @@ impl World {
 
     /// Floor area inside the bounding box, square metres (a rough size figure).
     pub fn bounding_area(&self) -> f64 {
-        (self.bounds_max[0] - self.bounds_min[0] - 2.0) * (self.bounds_max[1] - self.bounds_min[1] - 2.0)
+        (self.bounds_max[0] - self.bounds_min[0] - 2.0)
+            * (self.bounds_max[1] - self.bounds_min[1] - 2.0)
     }
 
     /// Casts a horizontal ray from `o` along the unit direction `d` up to distance `max_s`, and
@@ -1002,7 +1015,9 @@ legs = [{ type = "waypoints", points = [[9, 1], [9, 9]] }]
         let file = WorldFile::parse(SQUARE, "square.toml").expect("valid");
         let world = World::from_file(&file);
         assert_eq!(world.segments.len(), 4);
-        let hit = world.cast([1.0, 1.0], [1.0, 0.0], 100.0, |_, _| true).expect("hit");
+        let hit = world
+            .cast([1.0, 1.0], [1.0, 0.0], 100.0, |_, _| true)
+            .expect("hit");
         assert!((hit.s - 9.0).abs() < 1e-12);
         let d = [0.6f64, 0.8];
         let hit = world.cast([5.0, 5.0], d, 100.0, |_, _| true).expect("hit");
@@ -1022,12 +1037,18 @@ legs = [{ type = "waypoints", points = [[9, 1], [9, 9]] }]
     #[test]
     fn schema_and_semantic_errors_name_file_and_line() {
         let bad = SQUARE.replace("ceiling_height = 2.5", "ceiling_height = 2.5\ncolour = 3");
-        let msg = WorldFile::parse(&bad, "a.toml").expect_err("unknown key").to_string();
+        let msg = WorldFile::parse(&bad, "a.toml")
+            .expect_err("unknown key")
+            .to_string();
         assert!(msg.starts_with("a.toml:"), "{msg}");
         assert!(msg.contains("colour"), "{msg}");
         let bad = format!("{SQUARE}\n[[box]]\nmin = [3, 3]\nmax = [2, 4]\n");
         let err = WorldFile::parse(&bad, "b.toml").expect_err("inverted box");
-        assert_eq!(err.line, Some(16), "{err}");
-        assert!(err.to_string().contains("b.toml:16: box needs min < max"), "{err}");
+        // The table header `[[box]]` is on line 13.
+        assert_eq!(err.line, Some(13), "{err}");
+        assert!(
+            err.to_string().contains("b.toml:13: box needs min < max"),
+            "{err}"
+        );
     }
 }

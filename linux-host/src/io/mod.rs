@@ -1,0 +1,72 @@
+//! File formats: one thin module per format, over maintained crates.
+//!
+//! * [`ros2`]: ROS 2 message structs (serde + CDR) and their `ros2msg` schemas.
+//! * [`bag`]: writing ROS 2 bags as MCAP files.
+//! * [`atomic`]: atomic file output (temporary file, then rename), used by every writer.
+
+pub mod atomic;
+pub mod bag;
+pub mod ros2;
+
+pub use bag::BagWriter;
+
+/// Parses a decimal time in seconds (`976052890.244111`, `-1.5`, `12`) into nanoseconds
+/// exactly, without going through `f64`. Digits past the ninth decimal are truncated.
+///
+/// Returns `None` for anything that is not a plain decimal number or overflows.
+pub fn parse_stamp_ns(text: &str) -> Option<i64> {
+    let (negative, digits) = match text.strip_prefix('-') {
+        Some(rest) => (true, rest),
+        None => (false, text.strip_prefix('+').unwrap_or(text)),
+    };
+    let (whole, frac) = digits.split_once('.').unwrap_or((digits, ""));
+    if whole.is_empty() && frac.is_empty() {
+        return None;
+    }
+    if !whole
+        .bytes()
+        .chain(frac.bytes())
+        .all(|b| b.is_ascii_digit())
+    {
+        return None;
+    }
+    let secs: i64 = if whole.is_empty() {
+        0
+    } else {
+        whole.parse().ok()?
+    };
+    let mut nanos: i64 = 0;
+    for (i, b) in frac.bytes().take(9).enumerate() {
+        nanos += i64::from(b - b'0') * 10_i64.pow(8 - i as u32);
+    }
+    let total = secs.checked_mul(1_000_000_000)?.checked_add(nanos)?;
+    Some(if negative { -total } else { total })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::parse_stamp_ns;
+
+    #[test]
+    fn stamps_parse_exactly() {
+        assert_eq!(
+            parse_stamp_ns("976052890.244111"),
+            Some(976_052_890_244_111_000)
+        );
+        assert_eq!(parse_stamp_ns("12"), Some(12_000_000_000));
+        assert_eq!(parse_stamp_ns("-1.5"), Some(-1_500_000_000));
+        assert_eq!(parse_stamp_ns(".25"), Some(250_000_000));
+        assert_eq!(parse_stamp_ns("1.1234567891"), Some(1_123_456_789));
+        for bad in [
+            "",
+            ".",
+            "1e9",
+            "abc",
+            "1.2.3",
+            "nan",
+            "99999999999999999999",
+        ] {
+            assert_eq!(parse_stamp_ns(bad), None, "{bad}");
+        }
+    }
+}
