@@ -183,12 +183,72 @@ impl CameraParams {
     }
 }
 
+/// A pixel's ray in the body frame, split into what ray casting needs: the unit horizontal
+/// direction, and the inverse slope (horizontal metres per metre of rise; 0 for a ray that
+/// leaves the lens's field of view).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct PixelRay {
+    dir: [f64; 2],
+    inv_slope: f64,
+    kind: RayKind,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum RayKind {
+    Invalid,
+    Up,
+    Down,
+    Level,
+    Vertical,
+}
+
+impl PixelRay {
+    fn new(d: [f64; 3]) -> PixelRay {
+        if d[0].is_nan() {
+            return PixelRay {
+                dir: [0.0; 2],
+                inv_slope: 0.0,
+                kind: RayKind::Invalid,
+            };
+        }
+        let h = (d[0] * d[0] + d[1] * d[1]).sqrt();
+        if h < 1e-9 {
+            return PixelRay {
+                dir: [1.0, 0.0],
+                inv_slope: 0.0,
+                kind: if d[2] > 0.0 {
+                    RayKind::Vertical
+                } else {
+                    RayKind::Invalid
+                },
+            };
+        }
+        let slope = d[2] / h;
+        let kind = if slope > 1e-9 {
+            RayKind::Up
+        } else if slope < -1e-9 {
+            RayKind::Down
+        } else {
+            RayKind::Level
+        };
+        PixelRay {
+            dir: [d[0] / h, d[1] / h],
+            inv_slope: if kind == RayKind::Level {
+                0.0
+            } else {
+                1.0 / slope
+            },
+            kind,
+        }
+    }
+}
+
 /// A camera with its pixel rays precomputed in the body frame.
 #[derive(Clone, Debug)]
 pub struct Camera {
     /// Parameters.
     pub params: CameraParams,
-    rays: Vec<[f64; 3]>,
+    rays: Vec<PixelRay>,
 }
 
 /// A rendered 8-bit monochrome frame.
@@ -227,7 +287,7 @@ impl Camera {
                             r[0][2] * o[0] + r[1][2] * o[1] + r[2][2] * o[2],
                         ]
                     });
-                rays.push(ray);
+                rays.push(PixelRay::new(ray));
             }
         }
         Camera { params, rays }
@@ -239,13 +299,28 @@ impl Camera {
         let (c, s) = (theta.cos(), theta.sin());
         let m = self.params.mount;
         let o = [x + c * m[0] - s * m[1], y + s * m[0] + c * m[1], m[2]];
+        let up = world.ceiling_height - o[2];
         for (px, ray) in out.iter_mut().zip(&self.rays) {
-            if ray[0].is_nan() {
-                *px = 0.0;
-                continue;
-            }
-            let d = [c * ray[0] - s * ray[1], s * ray[0] + c * ray[1], ray[2]];
-            *px = trace(world, o, d);
+            let d = [
+                c * ray.dir[0] - s * ray.dir[1],
+                s * ray.dir[0] + c * ray.dir[1],
+            ];
+            *px = match ray.kind {
+                RayKind::Invalid => 0.0,
+                RayKind::Vertical => texture::ceiling(world, [o[0], o[1]]),
+                RayKind::Up => {
+                    trace_horizontal(world, o, d, 1.0 / ray.inv_slope, up * ray.inv_slope, true)
+                }
+                RayKind::Down => trace_horizontal(
+                    world,
+                    o,
+                    d,
+                    1.0 / ray.inv_slope,
+                    -o[2] * ray.inv_slope,
+                    false,
+                ),
+                RayKind::Level => trace_horizontal(world, o, d, 0.0, 1e4, false),
+            };
         }
     }
 
@@ -285,7 +360,7 @@ impl Camera {
                 let i = (r * gain * 200.0).min(255.0);
                 let sd = (p.read_noise.powi(2) + p.shot_noise.powi(2) * f64::from(i)).sqrt();
                 let n: f64 = rng.sample(StandardNormal);
-                (f64::from(i) + sd * n).round().clamp(0.0, 255.0) as u8
+                (f64::from(i) + sd * n + 0.5).clamp(0.0, 255.0) as u8
             })
             .collect();
         Frame {
@@ -298,7 +373,7 @@ impl Camera {
 
 /// Radiance along one ray from `o` (world, metres) in direction `d` (need not be unit).
 pub fn trace(world: &World, o: [f64; 3], d: [f64; 3]) -> f32 {
-    let h = d[0].hypot(d[1]);
+    let h = (d[0] * d[0] + d[1] * d[1]).sqrt();
     let ceiling = world.ceiling_height;
     if h < 1e-9 {
         return if d[2] > 0.0 {
@@ -316,6 +391,21 @@ pub fn trace(world: &World, o: [f64; 3], d: [f64; 3]) -> f32 {
     } else {
         1e4
     };
+    trace_horizontal(world, o, dir, slope, s_end, slope > 0.0)
+}
+
+/// Radiance along a ray given by its unit horizontal direction `dir`, its `slope` (rise per
+/// horizontal metre) and the horizontal distance `s_end` at which it meets the ceiling
+/// (`up`) or the floor.
+#[inline]
+fn trace_horizontal(
+    world: &World,
+    o: [f64; 3],
+    dir: [f64; 2],
+    slope: f64,
+    s_end: f64,
+    up: bool,
+) -> f32 {
     let hit = world.cast([o[0], o[1]], dir, s_end, |seg, s| {
         let z = o[2] + slope * s;
         seg.material != Material::Glass && z <= seg.height
@@ -327,7 +417,7 @@ pub fn trace(world: &World, o: [f64; 3], d: [f64; 3]) -> f32 {
         }
         None => {
             let p = [o[0] + dir[0] * s_end, o[1] + dir[1] * s_end];
-            if slope > 0.0 {
+            if up {
                 texture::ceiling(world, p)
             } else {
                 texture::floor(p)

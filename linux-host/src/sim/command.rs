@@ -34,6 +34,12 @@ pub struct SimArgs {
     /// Write a PNG of the floor plan with the path and one camera frame.
     #[arg(long)]
     pub preview: Option<PathBuf>,
+    /// Time of the preview's camera frame, seconds (default: the middle of the run).
+    #[arg(long)]
+    pub preview_at: Option<f64>,
+    /// Longer side of the preview's floor plan, pixels.
+    #[arg(long, default_value_t = 640)]
+    pub preview_size: u32,
     /// Camera lens: `fisheye` (Kannala-Brandt) or `pinhole`.
     #[arg(long, default_value = "fisheye", value_parser = ["fisheye", "pinhole"])]
     pub lens: String,
@@ -125,7 +131,8 @@ pub fn run(args: &SimArgs, out: &mut dyn Write) -> Result<()> {
     };
     let sim = Simulation::new(World::from_file(&file), cfg);
     if let Some(path) = &args.preview {
-        preview::write(&sim, path, 800)?;
+        let at = args.preview_at.unwrap_or(args.duration * 0.5);
+        preview::write(&sim, path, args.preview_size.clamp(64, 4096), at)?;
         writeln!(out, "preview written to {}", path.display())?;
     }
     let Some(bag_path) = &args.out else {
@@ -186,6 +193,8 @@ mod tests {
             sensors: SensorSet::CameraLidar,
             out: Some(out.to_path_buf()),
             preview: None,
+            preview_at: None,
+            preview_size: 640,
             lens: "pinhole".into(),
             resolution: "64x48".into(),
             camera_rate: 10.0,

@@ -384,11 +384,40 @@ impl Simulation {
         }
     }
 
-    /// Renders the frame of camera `cam` at time `t` (no lens fault).
+    /// Renders the frame of camera `cam` at time `t`, with a dirty lens if one is scheduled
+    /// then (frames are never dropped here).
     pub fn render_frame(&self, cam: usize, t: f64) -> Option<Frame> {
         let camera = self.cameras.get(cam)?;
         let mut rng = rng_for(self.cfg.seed, 300 + cam as u64, (t * 1000.0) as u64);
-        Some(camera.render(&self.world, |t| self.pose3(t), t, None, &mut rng))
+        Some(camera.render(
+            &self.world,
+            |t| self.pose3(t),
+            t,
+            self.dirty_lens(cam, t),
+            &mut rng,
+        ))
+    }
+
+    /// The lens contamination of camera `cam` at time `t`, if any.
+    fn dirty_lens(&self, cam: usize, t: f64) -> Option<DirtyLens> {
+        self.world
+            .faults
+            .iter()
+            .enumerate()
+            .find_map(|(i, f)| match f.kind {
+                FaultKind::DirtyLens { camera, blur, .. }
+                    if self.cfg.faults
+                        && t >= f.start
+                        && t < f.end
+                        && camera.is_none_or(|x| usize::from(x) == cam) =>
+                {
+                    Some(DirtyLens {
+                        blur,
+                        seed: mix(self.cfg.seed, 500, i as u64),
+                    })
+                }
+                _ => None,
+            })
     }
 
     fn pose3(&self, t: f64) -> (f64, f64, f64) {
@@ -579,20 +608,13 @@ impl Simulation {
                     }
                     next[CAMERA] += 1;
                     for c in 0..self.cameras.len() {
-                        let mut dirty = None;
+                        let dirty = self.dirty_lens(c, tc);
                         let mut kept = true;
-                        for (i, f) in self.world.faults.iter().enumerate() {
-                            if !(cfg.faults && tc >= f.start && tc < f.end) {
-                                continue;
-                            }
-                            if let FaultKind::DirtyLens { camera, blur, drop } = f.kind {
+                        for f in self.active(tc) {
+                            if let FaultKind::DirtyLens { camera, drop, .. } = f.kind {
                                 if camera.is_none_or(|x| usize::from(x) == c) {
                                     let mut r = rng_for(cfg.seed, 400 + c as u64, k);
                                     kept &= r.random::<f64>() >= drop;
-                                    dirty = Some(DirtyLens {
-                                        blur,
-                                        seed: mix(cfg.seed, 500, i as u64),
-                                    });
                                 }
                             }
                         }

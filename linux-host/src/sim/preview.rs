@@ -1,6 +1,7 @@
 //! A PNG preview: the floor plan (walls black, glass cyan, furniture brown, pillars grey,
 //! ceiling features pale yellow, walkways blue, slip zones orange) with the ground-truth path in
-//! red, and beside it one camera frame from the middle of the run.
+//! red (start green, camera position blue), and beside it the frame of camera 0 at a chosen
+//! time (the middle of the run by default).
 
 use std::path::Path;
 
@@ -32,8 +33,9 @@ fn rect(img: &mut RgbImage, a: (f64, f64), b: (f64, f64), c: Rgb<u8>) {
     }
 }
 
-/// Draws the preview image (`max_side` pixels for the plan's longer side).
-pub fn render(sim: &Simulation, max_side: u32) -> RgbImage {
+/// Draws the preview image (`max_side` pixels for the plan's longer side) with the frame of
+/// camera 0 at time `at` (seconds).
+pub fn render(sim: &Simulation, max_side: u32, at: f64) -> RgbImage {
     let w = &sim.world;
     let size = [
         w.bounds_max[0] - w.bounds_min[0],
@@ -52,9 +54,9 @@ pub fn render(sim: &Simulation, max_side: u32) -> RgbImage {
         .rig
         .cameras
         .first()
-        .and_then(|_| sim.render_frame(0, sim.cfg.duration * 0.5));
+        .and_then(|_| sim.render_frame(0, at));
     let (fw, fh, zoom) = frame.as_ref().map_or((0, 0, 1), |f| {
-        let zoom = (ph / f.height).clamp(1, 2);
+        let zoom = (ph / f.height).clamp(1, 2).min((480 / f.height).max(1));
         (f.width * zoom, f.height * zoom, zoom)
     });
     let mut img = RgbImage::from_pixel(
@@ -105,7 +107,7 @@ pub fn render(sim: &Simulation, max_side: u32) -> RgbImage {
             Rgb([0, 160, 0]),
         );
     }
-    let mid = sim.state(sim.cfg.duration * 0.5).pose;
+    let mid = sim.state(at).pose;
     let (x, y) = to_px([mid.x, mid.y]);
     rect(
         &mut img,
@@ -129,8 +131,8 @@ pub fn render(sim: &Simulation, max_side: u32) -> RgbImage {
 ///
 /// # Errors
 /// Encoding or IO errors.
-pub fn write(sim: &Simulation, path: &Path, max_side: u32) -> Result<()> {
-    let img = render(sim, max_side);
+pub fn write(sim: &Simulation, path: &Path, max_side: u32, at: f64) -> Result<()> {
+    let img = render(sim, max_side, at);
     let mut bytes = Vec::new();
     img.write_to(
         &mut std::io::Cursor::new(&mut bytes),

@@ -15,11 +15,22 @@ pub fn hash01(x: i64, y: i64, seed: u32) -> f32 {
     (h >> 40) as f32 / (1u64 << 24) as f32
 }
 
+/// `floor` without a library call (baseline x86-64 has no rounding instruction).
+#[inline]
+fn fast_floor(x: f64) -> i64 {
+    let i = x as i64;
+    if (i as f64) > x {
+        i - 1
+    } else {
+        i
+    }
+}
+
 /// Smooth value noise in `[0, 1)` with unit lattice spacing.
 #[inline]
 pub fn value_noise(x: f64, y: f64, seed: u32) -> f32 {
-    let (fx, fy) = (x.floor(), y.floor());
-    let (ix, iy) = (fx as i64, fy as i64);
+    let (ix, iy) = (fast_floor(x), fast_floor(y));
+    let (fx, fy) = (ix as f64, iy as f64);
     let (tx, ty) = ((x - fx) as f32, (y - fy) as f32);
     let (sx, sy) = (tx * tx * (3.0 - 2.0 * tx), ty * ty * (3.0 - 2.0 * ty));
     let a = hash01(ix, iy, seed);
@@ -87,8 +98,9 @@ fn plain_ceiling(world: &World, p: P2) -> f32 {
         + tex * (value_noise(p[0] * 1.5, p[1] * 1.5, 11) - 0.5)
         + 0.6 * tex * (value_noise(p[0] * 7.0, p[1] * 7.0, 12) - 0.5);
     if c.tile > 0.0 {
-        let fx = (p[0] / c.tile).rem_euclid(1.0);
-        let fy = (p[1] / c.tile).rem_euclid(1.0);
+        let (tx, ty) = (p[0] / c.tile, p[1] / c.tile);
+        let fx = tx - fast_floor(tx) as f64;
+        let fy = ty - fast_floor(ty) as f64;
         let e = 0.015 / c.tile;
         if fx < e || fx > 1.0 - e || fy < e || fy > 1.0 - e {
             a *= 0.65;
@@ -100,7 +112,7 @@ fn plain_ceiling(world: &World, p: P2) -> f32 {
 /// Wall albedo at fraction `u` along segment `seg`, height `z`.
 pub fn wall(world: &World, seg: usize, u: f64, z: f64) -> f32 {
     let s = &world.segments[seg];
-    let len = (s.b[0] - s.a[0]).hypot(s.b[1] - s.a[1]);
+    let len = ((s.b[0] - s.a[0]).powi(2) + (s.b[1] - s.a[1]).powi(2)).sqrt();
     let along = u * len;
     for p in world.posters_on(seg) {
         if u >= p.u[0] && u <= p.u[1] && z >= p.z[0] && z <= p.z[1] {

@@ -772,9 +772,9 @@ impl World {
         lo = [lo[0] - 1.0, lo[1] - 1.0];
         hi = [hi[0] + 1.0, hi[1] + 1.0];
         let size = [hi[0] - lo[0], hi[1] - lo[1]];
-        // About 4 segments per cell on average, bounded to a sane range.
+        // About one segment per two cells on average, bounded to a sane range.
         let area = size[0] * size[1];
-        let cell = (area / (segments.len().max(1) as f64 / 2.0))
+        let cell = (area / (2.0 * segments.len().max(1) as f64))
             .sqrt()
             .clamp(0.5, 4.0);
         let seg_boxes: Vec<(P2, P2)> = segments
