@@ -2,7 +2,7 @@
 //! parallel, and hands a stream ordered by arrival time to a [`SampleSink`].
 //!
 //! **Timestamps.** Sensor `s` with period `T` captures sample `k` at
-//! `k T + j_k`, with jitter `j_k ~ N(0, jitter²)` clipped to `±T/4`. The message stamp is
+//! `k T + j_k`, with jitter `j_k ~ N(0, jitter²)` clipped to `±min(T/4, 50 ms)`. The message stamp is
 //! `capture + stamp_offset` (a constant driver delay the mapper does not know), and the sample
 //! arrives (bag log time) at `capture + latency + |N(0, (latency/4)²)|`. Ground truth is
 //! stamped with the exact capture time at 50 Hz. Two cameras are hardware-synchronised: they
@@ -328,6 +328,9 @@ pub fn rng_for(seed: u64, stream: u64, index: u64) -> ChaCha8Rng {
 
 const GT_RATE: f64 = 50.0;
 
+/// Capture jitter never exceeds this (keeps the arrival-order merge window small).
+const MAX_JITTER: f64 = 0.05;
+
 enum Job {
     Scan(u64, f64),
     Frame(usize, u64, f64, Option<DirtyLens>),
@@ -368,7 +371,8 @@ impl Simulation {
         let period = 1.0 / tm.rate_hz;
         let mut rng = rng_for(self.cfg.seed, 100 + s as u64, k);
         let j: f64 = rng.sample(StandardNormal);
-        (k as f64 * period + (j * tm.jitter).clamp(-period / 4.0, period / 4.0)).max(0.0)
+        let bound = MAX_JITTER.min(period / 4.0);
+        (k as f64 * period + (j * tm.jitter).clamp(-bound, bound)).max(0.0)
     }
 
     fn stamped(&self, s: usize, k: u64, capture: f64, payload: Payload) -> Sample {
@@ -666,8 +670,8 @@ impl Simulation {
                 }
                 pending.insert(key(&sample, order), sample);
             }
-            // Everything captured later arrives at or after t1 - max jitter.
-            let horizon = ((t1 - 0.1) * 1e9) as i64;
+            // Everything captured later arrives at or after t1 - MAX_JITTER.
+            let horizon = ((t1 - MAX_JITTER) * 1e9) as i64;
             while let Some(entry) = pending.first_entry() {
                 if entry.key().0 >= horizon && t1 < cfg.duration {
                     break;

@@ -5,7 +5,8 @@
 //!
 //! Topics: `/ground_truth` (`nav_msgs/Odometry`, frame `map`, exact capture times), `/odom`
 //! (`nav_msgs/Odometry`), `/imu` (`sensor_msgs/Imu`), `/scan` (`sensor_msgs/LaserScan`),
-//! `/camera0/image_raw` and `/camera1/image_raw` (`sensor_msgs/Image`, `mono8`). Times are
+//! `/camera0/image_raw` and `/camera1/image_raw` (`sensor_msgs/Image`, `mono8`), and the sensor
+//! mounts on `/tf_static` (`tf2_msgs/TFMessage`). Times are
 //! seconds from the start plus [`EPOCH_NS`].
 
 use std::fmt::Write as _;
@@ -19,8 +20,8 @@ use super::engine::{Payload, Sample, SampleSink, Simulation};
 use crate::io::atomic::AtomicFile;
 use crate::io::bag::BagWriter;
 use crate::io::ros2::{
-    Header, Image, Imu, LaserScan, Odometry, Pose, PoseWithCovariance, Quaternion, Time, Twist,
-    TwistWithCovariance, Vector3,
+    Header, Image, Imu, LaserScan, Odometry, Pose, PoseWithCovariance, Quaternion, TfMessage, Time,
+    Transform, TransformStamped, Twist, TwistWithCovariance, Vector3,
 };
 
 /// The wall-clock origin of simulated time: 2023-11-14T22:13:20Z.
@@ -64,8 +65,10 @@ impl BagSink {
     /// # Errors
     /// The folder is not writable.
     pub fn create(path: &Path, sim: &Simulation) -> Result<BagSink> {
+        let mut bag = BagWriter::create(path)?;
+        bag.write("/tf_static", EPOCH_NS, &static_transforms(sim))?;
         Ok(BagSink {
-            bag: BagWriter::create(path)?,
+            bag,
             gyro_var: sim.rig.gyro.noise.powi(2),
             accel_var: sim.rig.gyro.accel_noise.powi(2),
         })
@@ -200,6 +203,81 @@ impl SampleSink for BagSink {
     }
 }
 
+/// The quaternion of a rotation matrix given by its columns.
+fn quaternion_from_columns(c: [[f64; 3]; 3]) -> Quaternion {
+    // m[row][col]
+    let m = |r: usize, k: usize| c[k][r];
+    let trace = m(0, 0) + m(1, 1) + m(2, 2);
+    if trace > 0.0 {
+        let s = 0.5 / (trace + 1.0).sqrt();
+        Quaternion {
+            w: 0.25 / s,
+            x: (m(2, 1) - m(1, 2)) * s,
+            y: (m(0, 2) - m(2, 0)) * s,
+            z: (m(1, 0) - m(0, 1)) * s,
+        }
+    } else if m(0, 0) > m(1, 1) && m(0, 0) > m(2, 2) {
+        let s = 2.0 * (1.0 + m(0, 0) - m(1, 1) - m(2, 2)).sqrt();
+        Quaternion {
+            w: (m(2, 1) - m(1, 2)) / s,
+            x: 0.25 * s,
+            y: (m(0, 1) + m(1, 0)) / s,
+            z: (m(0, 2) + m(2, 0)) / s,
+        }
+    } else if m(1, 1) > m(2, 2) {
+        let s = 2.0 * (1.0 + m(1, 1) - m(0, 0) - m(2, 2)).sqrt();
+        Quaternion {
+            w: (m(0, 2) - m(2, 0)) / s,
+            x: (m(0, 1) + m(1, 0)) / s,
+            y: 0.25 * s,
+            z: (m(1, 2) + m(2, 1)) / s,
+        }
+    } else {
+        let s = 2.0 * (1.0 + m(2, 2) - m(0, 0) - m(1, 1)).sqrt();
+        Quaternion {
+            w: (m(1, 0) - m(0, 1)) / s,
+            x: (m(0, 2) + m(2, 0)) / s,
+            y: (m(1, 2) + m(2, 1)) / s,
+            z: 0.25 * s,
+        }
+    }
+}
+
+/// The sensor mounts as `/tf_static`: `base_link` to `laser`, `imu` and `cameraN` (optical
+/// frame: z forward, x right, y down).
+pub fn static_transforms(sim: &Simulation) -> TfMessage {
+    let header = Header::new(Time::from_nanos(EPOCH_NS), "base_link");
+    let mut transforms = vec![TransformStamped {
+        header: header.clone(),
+        child_frame_id: "imu".into(),
+        transform: Transform::planar(0.0, 0.0, 0.0),
+    }];
+    if let Some(l) = &sim.rig.lidar {
+        let mut t = Transform::planar(l.mount_x, 0.0, 0.0);
+        t.translation.z = l.height;
+        transforms.push(TransformStamped {
+            header: header.clone(),
+            child_frame_id: "laser".into(),
+            transform: t,
+        });
+    }
+    for (i, c) in sim.rig.cameras.iter().enumerate() {
+        transforms.push(TransformStamped {
+            header: header.clone(),
+            child_frame_id: format!("camera{i}"),
+            transform: Transform {
+                translation: Vector3 {
+                    x: c.mount[0],
+                    y: c.mount[1],
+                    z: c.mount[2],
+                },
+                rotation: quaternion_from_columns(c.body_from_optical()),
+            },
+        });
+    }
+    TfMessage { transforms }
+}
+
 /// Collects the ground truth in TUM format (`t x y z qx qy qz qw`, one pose per line).
 #[derive(Debug, Default)]
 pub struct TumSink {
@@ -329,4 +407,44 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
     let mut f = AtomicFile::create(path)?;
     f.write_all(bytes)?;
     f.commit()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::camera::CameraParams;
+
+    #[test]
+    fn camera_mount_quaternion_rotates_optical_axes_into_the_body() {
+        for (tilt, yaw) in [(45.0, 0.0), (60.0, 180.0), (30.0, 90.0)] {
+            let p = CameraParams::new(320, 240, true, tilt, yaw);
+            let cols = p.body_from_optical();
+            let q = quaternion_from_columns(cols);
+            // Rotate the optical unit vectors with q and compare with the columns.
+            let rot = |v: [f64; 3]| {
+                let (w, x, y, z) = (q.w, q.x, q.y, q.z);
+                let t = [
+                    2.0 * (y * v[2] - z * v[1]),
+                    2.0 * (z * v[0] - x * v[2]),
+                    2.0 * (x * v[1] - y * v[0]),
+                ];
+                [
+                    v[0] + w * t[0] + (y * t[2] - z * t[1]),
+                    v[1] + w * t[1] + (z * t[0] - x * t[2]),
+                    v[2] + w * t[2] + (x * t[1] - y * t[0]),
+                ]
+            };
+            for (k, col) in cols.iter().enumerate() {
+                let mut e = [0.0; 3];
+                e[k] = 1.0;
+                let r = rot(e);
+                for i in 0..3 {
+                    assert!(
+                        (r[i] - col[i]).abs() < 1e-9,
+                        "tilt {tilt} yaw {yaw}: {r:?} vs {col:?}"
+                    );
+                }
+            }
+        }
+    }
 }

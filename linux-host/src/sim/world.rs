@@ -948,13 +948,19 @@ pub fn ray_segment(o: P2, d: P2, a: P2, b: P2) -> Option<(f64, f64)> {
         return None;
     }
     let w = [a[0] - o[0], a[1] - o[1]];
-    let s = (w[0] * e[1] - w[1] * e[0]) / denom;
-    let u = (w[0] * d[1] - w[1] * d[0]) / denom;
-    if s >= 0.0 && (0.0..=1.0).contains(&u) {
-        Some((s, u))
+    let s_num = w[0] * e[1] - w[1] * e[0];
+    let u_num = w[0] * d[1] - w[1] * d[0];
+    // Test the signs before dividing: most candidates miss.
+    let (s_num, u_num, den) = if denom > 0.0 {
+        (s_num, u_num, denom)
     } else {
-        None
+        (-s_num, -u_num, -denom)
+    };
+    if s_num < 0.0 || u_num < 0.0 || u_num > den {
+        return None;
     }
+    let inv = 1.0 / den;
+    Some((s_num * inv, u_num * inv))
 }
 
 fn project_fraction(p: P2, s: &Segment) -> f64 {
