@@ -31,6 +31,8 @@ pub enum Command {
     /// Evaluate trajectories: relations, ATE, RPE, GMapping reference poses.
     #[command(subcommand)]
     Eval(crate::eval::cli::EvalCommand),
+    /// Simulate a robot in a world and write a ROS 2 bag with exact ground truth.
+    Sim(crate::sim::command::SimArgs),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -45,5 +47,6 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Corrupt(args) => crate::corrupt::run(&args, out),
         Command::Convert(args) => crate::io::cli::run(&args, out),
         Command::Eval(cmd) => crate::eval::cli::run(&cmd, out),
+        Command::Sim(args) => crate::sim::command::run(&args, out),
     }
 }

@@ -12,3 +12,4 @@ pub mod prune;
 pub mod prune_online;
 pub mod eval;
 pub mod io;
+pub mod sim;
