@@ -26,6 +26,7 @@ mod fmt;
 
 pub mod backend;
 pub mod error;
+pub mod frontend;
 pub mod geom;
 pub mod profile;
 pub mod storage;
