@@ -20,7 +20,9 @@
 //! Degeneracy: the Hessian's rotation row/column is scaled by the query's RMS radius, so all
 //! three directions are in metres; if its smallest eigenvalue is below `degeneracy_ratio`
 //! times the largest, the match is refused with the weak direction (a corridor gives
-//! `[1, 0, 0]`-like directions along its axis).
+//! `[1, 0, 0]`-like directions along its axis), or, with `allow_degenerate`, solved only in
+//! the well-constrained directions (the seed, i.e. wheel odometry, is kept along the weak
+//! one) and flagged, which is what LiDAR odometry in a corridor needs.
 //!
 //! The information matrix is the final Hessian divided by the weighted residual variance
 //! (floored by `min_sigma` so perfect synthetic data does not give infinite confidence).
@@ -54,6 +56,10 @@ pub struct IcpConfig {
     pub degeneracy_ratio: f64,
     /// Floor of the residual standard deviation used for the information matrix, metres.
     pub min_sigma: f64,
+    /// On degenerate geometry, keep the seed along the weak direction and solve the others
+    /// (reported in [`IcpResult::degenerate`]) instead of returning
+    /// [`MatchError::Degenerate`].
+    pub allow_degenerate: bool,
 }
 
 impl Default for IcpConfig {
@@ -67,6 +73,7 @@ impl Default for IcpConfig {
             rotation_eps: 1e-5,
             degeneracy_ratio: 2e-3,
             min_sigma: 0.01,
+            allow_degenerate: false,
         }
     }
 }
@@ -88,6 +95,9 @@ pub struct IcpResult {
     pub rms: f64,
     /// Information matrix of `pose` (`[x, y, theta]`).
     pub information: Matrix3<f64>,
+    /// With [`IcpConfig::allow_degenerate`]: the weakly constrained direction (as in
+    /// [`MatchError::Degenerate`]), along which the pose stayed at the seed.
+    pub degenerate: Option<[f64; 3]>,
 }
 
 /// Matching failures.
@@ -196,11 +206,22 @@ fn linearize(query: &[ScanPoint], tree: &KdTree<'_>, pose: &Se2, cfg: &IcpConfig
     out
 }
 
-/// Checks the conditioning of `h` with the rotation scaled by `radius`.
-fn check_degeneracy(h: &Matrix3<f64>, radius: f64, cfg: &IcpConfig) -> Result<(), MatchError> {
-    let scale = Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, 1.0 / radius));
-    let hs = scale * h * scale;
-    let eig = SymmetricEigen::new(hs);
+/// Degeneracy-aware Gauss-Newton step.
+///
+/// The Hessian is scaled so its three directions are in metres (rotation times `radius`) and
+/// decomposed; with all eigenvalues above `degeneracy_ratio` times the largest, this is the
+/// ordinary step `-H^-1 g`. Otherwise the weak direction is reported: as an error, or, when
+/// `allow_degenerate` is set, the step is taken only along the well-constrained eigenvectors
+/// (the seed is kept along the weak one) and the direction is returned with it.
+fn solve_step(
+    h: &Matrix3<f64>,
+    g: &Vector3<f64>,
+    radius: f64,
+    cfg: &IcpConfig,
+) -> Result<(Vector3<f64>, Option<[f64; 3]>), MatchError> {
+    let scale = Vector3::new(1.0, 1.0, 1.0 / radius);
+    let sm = Matrix3::from_diagonal(&scale);
+    let eig = SymmetricEigen::new(sm * h * sm);
     let (mut imin, mut imax) = (0, 0);
     for i in 1..3 {
         if eig.eigenvalues[i] < eig.eigenvalues[imin] {
@@ -215,6 +236,7 @@ fn check_degeneracy(h: &Matrix3<f64>, radius: f64, cfg: &IcpConfig) -> Result<()
         return Err(MatchError::IllConditioned);
     }
     let ratio = lmin / lmax;
+    let mut degenerate = None;
     if ratio < cfg.degeneracy_ratio {
         let v = eig.eigenvectors.column(imin);
         let mut dir = [v[0], v[1], v[2]];
@@ -227,12 +249,28 @@ fn check_degeneracy(h: &Matrix3<f64>, radius: f64, cfg: &IcpConfig) -> Result<()
         if big < 0.0 {
             dir = [-dir[0], -dir[1], -dir[2]];
         }
-        return Err(MatchError::Degenerate {
-            direction: dir,
-            ratio,
-        });
+        if !cfg.allow_degenerate {
+            return Err(MatchError::Degenerate {
+                direction: dir,
+                ratio,
+            });
+        }
+        degenerate = Some(dir);
     }
-    Ok(())
+    let gs = g.component_mul(&scale);
+    let mut step_s = Vector3::zeros();
+    for i in 0..3 {
+        let l = eig.eigenvalues[i];
+        if l >= cfg.degeneracy_ratio * lmax {
+            let v = eig.eigenvectors.column(i);
+            step_s -= v * (v.dot(&gs) / l);
+        }
+    }
+    let step = step_s.component_mul(&scale);
+    if !(step[0].is_finite() && step[1].is_finite() && step[2].is_finite()) {
+        return Err(MatchError::IllConditioned);
+    }
+    Ok((step, degenerate))
 }
 
 /// Aligns `query` (points in its own frame) to the reference points in `tree`, starting from
@@ -281,18 +319,13 @@ pub fn align(
         if converged || iterations >= cfg.max_iterations {
             break;
         }
-        check_degeneracy(&lin.h, radius, cfg)?;
-        let chol = lin.h.cholesky().ok_or(MatchError::IllConditioned)?;
-        let step = -chol.solve(&lin.g);
-        if !(step[0].is_finite() && step[1].is_finite() && step[2].is_finite()) {
-            return Err(MatchError::IllConditioned);
-        }
+        let (step, _) = solve_step(&lin.h, &lin.g, radius, cfg)?;
         pose = Se2::new(pose.x + step[0], pose.y + step[1], pose.theta + step[2]);
         iterations += 1;
         converged = libm::sqrt(step[0] * step[0] + step[1] * step[1]) < cfg.translation_eps
             && libm::fabs(step[2]) < cfg.rotation_eps;
     }
-    check_degeneracy(&lin.h, radius, cfg)?;
+    let (_, degenerate) = solve_step(&lin.h, &lin.g, radius, cfg)?;
     let dof = (lin.rows as f64 - 3.0).max(1.0);
     let var = (lin.sum_w_e2 / dof).max(cfg.min_sigma * cfg.min_sigma);
     let rms = libm::sqrt(lin.sum_w_e2 / (lin.rows.max(1) as f64));
@@ -304,6 +337,7 @@ pub fn align(
         fitness: lin.inliers as f32 / query.len() as f32,
         rms,
         information: lin.h / var,
+        degenerate,
     })
 }
 
@@ -430,6 +464,18 @@ mod tests {
             }
             other => panic!("expected a degenerate match, got {other:?}"),
         }
+        // Allowed: y and theta are solved, x stays at the seed.
+        let cfg = IcpConfig {
+            allow_degenerate: true,
+            ..IcpConfig::default()
+        };
+        let r = align(&query, &tree, &Se2::new(0.2, 0.0, 0.0), &cfg).unwrap();
+        assert!(r.degenerate.is_some_and(|d| d[0] > 0.99), "{r:?}");
+        assert!((r.pose.x - 0.2).abs() < 0.01, "{r:?}");
+        assert!(
+            (r.pose.y - 0.1).abs() < 0.005 && (r.pose.theta - 0.02).abs() < 0.002,
+            "{r:?}"
+        );
         // The same corridor with an end wall in range is fine.
         polygon(&[[6.0, -1.0], [6.0, 1.0]], &mut walls);
         let mut g = scan_at(Se2::IDENTITY, 720, &walls, &mut ranges);
