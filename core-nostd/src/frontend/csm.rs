@@ -20,6 +20,9 @@ use crate::frontend::grid::Submap;
 use crate::frontend::scan::{ScanPoint, MAX_POINTS};
 use crate::geom::Se2;
 
+/// Cell coordinates are clamped to this magnitude (far beyond any window).
+const FAR: i32 = 1 << 24;
+
 /// Most pyramid levels (level 0 included).
 pub const MAX_LEVELS: usize = 8;
 /// Most rotations tried in one search.
@@ -109,7 +112,7 @@ impl<'a> Pyramid<'a> {
     /// [`CsmError::WrongStorage`] when `levels` is not in `1..=MAX_LEVELS` or the storage
     /// does not have [`Pyramid::storage_len`] bytes.
     pub fn build(
-        submap: &Submap<'_>,
+        submap: &Submap<impl AsRef<[i8]>>,
         levels: usize,
         storage: &'a mut [u8],
     ) -> Result<Self, CsmError> {
@@ -232,7 +235,7 @@ impl Search<'_, '_> {
 /// [`CsmError`]: empty scan, mismatched pyramid, bad window, or nothing above the threshold.
 pub fn search(
     scan: &[ScanPoint],
-    submap: &Submap<'_>,
+    submap: &Submap<impl AsRef<[i8]>>,
     pyramid: &Pyramid<'_>,
     seed: &Se2,
     config: &CsmConfig,
@@ -299,7 +302,15 @@ pub fn search(
             ];
             let g = submap.local_to_cell(p);
             // Cannot overflow: at most MAX_POINTS points.
-            let _ = cells.push([libm::floorf(g[0]) as i32, libm::floorf(g[1]) as i32]);
+            // Far or NaN points land far outside (score 0) without overflowing.
+            let clamp = |v: f32| {
+                if v.is_nan() {
+                    FAR
+                } else {
+                    libm::floorf(v).clamp(-FAR as f32, FAR as f32) as i32
+                }
+            };
+            let _ = cells.push([clamp(g[0]), clamp(g[1])]);
         }
         let mut dy = -window;
         while dy <= window {

@@ -19,6 +19,10 @@ use core::fmt;
 use crate::frontend::scan::{fit_normal, ScanPoint};
 use crate::geom::Se2;
 
+/// Points (and sensor positions) farther than this many cells from the submap are ignored
+/// (NaN included), so cell arithmetic never overflows.
+const FAR_CELLS: f32 = 1.0e6;
+
 /// Natural log-odds per integer unit stored in a cell.
 pub const LOG_ODDS_UNIT: f32 = 0.1;
 
@@ -75,7 +79,8 @@ pub enum GridError {
     },
     /// Resolution not positive and finite, zero side, or clamps/updates of the wrong sign.
     InvalidParams,
-    /// The insertion pose is not finite.
+    /// The insertion pose is not finite, or absurdly far (over a million cells) from the
+    /// submap.
     InvalidPose,
 }
 
@@ -86,7 +91,7 @@ impl fmt::Display for GridError {
                 write!(f, "grid storage holds {given} cells, {needed} needed")
             }
             GridError::InvalidParams => f.write_str("invalid grid parameters"),
-            GridError::InvalidPose => f.write_str("non-finite insertion pose"),
+            GridError::InvalidPose => f.write_str("non-finite or far insertion pose"),
         }
     }
 }
@@ -111,42 +116,151 @@ pub struct InsertStats {
     pub outside: u32,
 }
 
-/// An occupancy-grid submap over borrowed cells.
-#[derive(Debug)]
-pub struct Submap<'a> {
+/// An occupancy-grid submap over cells of any storage `S`: a borrowed slice (`&mut [i8]` to
+/// update, `&[i8]` to read), or an owned array `[i8; N]` at the edge.
+#[derive(Debug, Clone)]
+pub struct Submap<S> {
     origin: Se2,
     params: GridParams,
-    cells: &'a mut [i8],
+    cells: S,
     /// Probability of every log-odds value, indexed by `l + 128`.
     table: [f32; 256],
 }
 
-impl<'a> Submap<'a> {
-    /// A submap of unknown cells centred on `origin` (world frame).
+fn check_params(origin: &Se2, p: &GridParams, len: usize) -> Result<(), GridError> {
+    if !(p.resolution.is_finite()
+        && p.resolution > 0.0
+        && p.side > 0
+        && p.hit > 0
+        && p.miss < 0
+        && p.min < 0
+        && p.max > 0
+        && origin.is_finite())
+    {
+        return Err(GridError::InvalidParams);
+    }
+    if len != p.cells() {
+        return Err(GridError::WrongStorage {
+            needed: p.cells(),
+            given: len,
+        });
+    }
+    Ok(())
+}
+
+impl<S: AsRef<[i8]> + AsMut<[i8]>> Submap<S> {
+    /// A submap of unknown cells centred on `origin` (world frame); `cells` is cleared.
     ///
     /// # Errors
-    /// [`GridError::WrongStorage`] when `cells.len() != side * side`,
+    /// [`GridError::WrongStorage`] when `cells` does not hold `side * side` cells,
     /// [`GridError::InvalidParams`] for bad parameters or a non-finite origin.
-    pub fn new(origin: Se2, params: GridParams, cells: &'a mut [i8]) -> Result<Self, GridError> {
-        let p = &params;
-        if !(p.resolution.is_finite()
-            && p.resolution > 0.0
-            && p.side > 0
-            && p.hit > 0
-            && p.miss < 0
-            && p.min < 0
-            && p.max > 0
-            && origin.is_finite())
-        {
-            return Err(GridError::InvalidParams);
+    pub fn new(origin: Se2, params: GridParams, mut cells: S) -> Result<Self, GridError> {
+        check_params(&origin, &params, cells.as_ref().len())?;
+        cells.as_mut().fill(0);
+        Submap::from_cells(origin, params, cells)
+    }
+
+    fn update(&mut self, ix: i32, iy: i32, delta: i8) -> bool {
+        let s = self.params.side as i32;
+        if ix < 0 || iy < 0 || ix >= s || iy >= s {
+            return false;
         }
-        if cells.len() != p.cells() {
-            return Err(GridError::WrongStorage {
-                needed: p.cells(),
-                given: cells.len(),
-            });
+        let (lo, hi) = (self.params.min, self.params.max);
+        match self.cells.as_mut().get_mut((iy * s + ix) as usize) {
+            Some(c) => {
+                *c = c.saturating_add(delta).clamp(lo, hi);
+                true
+            }
+            None => false,
         }
-        cells.fill(0);
+    }
+
+    /// Inserts a scan taken at `robot_pose` (world) by a sensor at `sensor` in the robot frame;
+    /// `points` are in the robot frame.
+    ///
+    /// # Errors
+    /// [`GridError::InvalidPose`] for a non-finite pose.
+    pub fn insert_scan(
+        &mut self,
+        robot_pose: &Se2,
+        sensor: &Se2,
+        points: &[ScanPoint],
+    ) -> Result<InsertStats, GridError> {
+        if !robot_pose.is_finite() || !sensor.is_finite() {
+            return Err(GridError::InvalidPose);
+        }
+        let local = self.to_local(robot_pose);
+        let (c, s) = (libm::cos(local.theta) as f32, libm::sin(local.theta) as f32);
+        let (tx, ty) = (local.x as f32, local.y as f32);
+        let to_local = |p: [f32; 2]| [tx + c * p[0] - s * p[1], ty + s * p[0] + c * p[1]];
+        let start = self.local_to_cell(to_local([sensor.x as f32, sensor.y as f32]));
+        if !(libm::fabsf(start[0]) < FAR_CELLS && libm::fabsf(start[1]) < FAR_CELLS) {
+            return Err(GridError::InvalidPose);
+        }
+        let (sx, sy) = (libm::floorf(start[0]) as i32, libm::floorf(start[1]) as i32);
+        let mut stats = InsertStats::default();
+        // Longest ray walked: a diagonal of the grid plus the start's distance to it.
+        let side = self.params.side as i32;
+        let limit = 2 * side + sx.abs().max(sy.abs()) * 2 + 4;
+        let miss = self.params.miss;
+        for q in points {
+            let e = self.local_to_cell(to_local(q.p));
+            if !(libm::fabsf(e[0]) < FAR_CELLS && libm::fabsf(e[1]) < FAR_CELLS) {
+                continue;
+            }
+            let (ex, ey) = (libm::floorf(e[0]) as i32, libm::floorf(e[1]) as i32);
+            // Bresenham from the start cell, excluding the end cell.
+            let (dx, dy) = ((ex - sx).abs(), -(ey - sy).abs());
+            let (stx, sty) = (if sx < ex { 1 } else { -1 }, if sy < ey { 1 } else { -1 });
+            let (mut x, mut y, mut err) = (sx, sy, dx + dy);
+            let mut steps = 0;
+            while (x != ex || y != ey) && steps < limit {
+                if self.update(x, y, miss) {
+                    stats.misses += 1;
+                } else if (x < 0 && stx < 0)
+                    || (y < 0 && sty < 0)
+                    || (x >= side && stx > 0)
+                    || (y >= side && sty > 0)
+                {
+                    // Left the grid and moving away: the rest is outside too.
+                    break;
+                }
+                let e2 = 2 * err;
+                if e2 >= dy {
+                    err += dy;
+                    x += stx;
+                }
+                if e2 <= dx {
+                    err += dx;
+                    y += sty;
+                }
+                steps += 1;
+            }
+        }
+        let hit = self.params.hit;
+        for q in points {
+            let e = self.local_to_cell(to_local(q.p));
+            if !(libm::fabsf(e[0]) < FAR_CELLS && libm::fabsf(e[1]) < FAR_CELLS) {
+                stats.outside += 1;
+                continue;
+            }
+            if self.update(libm::floorf(e[0]) as i32, libm::floorf(e[1]) as i32, hit) {
+                stats.hits += 1;
+            } else {
+                stats.outside += 1;
+            }
+        }
+        Ok(stats)
+    }
+}
+
+impl<S: AsRef<[i8]>> Submap<S> {
+    /// A submap over existing cells (e.g. one kept in a pool, or a read-only `&[i8]`).
+    ///
+    /// # Errors
+    /// As [`Submap::new`].
+    pub fn from_cells(origin: Se2, params: GridParams, cells: S) -> Result<Self, GridError> {
+        check_params(&origin, &params, cells.as_ref().len())?;
         let mut table = [0.0f32; 256];
         for (i, t) in table.iter_mut().enumerate() {
             *t = probability((i as i32 - 128) as i8);
@@ -157,6 +271,11 @@ impl<'a> Submap<'a> {
             cells,
             table,
         })
+    }
+
+    /// Gives the storage back.
+    pub fn into_cells(self) -> S {
+        self.cells
     }
 
     /// Origin pose in the world.
@@ -176,7 +295,7 @@ impl<'a> Submap<'a> {
 
     /// The cells, row-major (`iy * side + ix`), for map assembly.
     pub fn cells(&self) -> &[i8] {
-        self.cells
+        self.cells.as_ref()
     }
 
     /// Log-odds of a cell, `None` outside.
@@ -185,7 +304,7 @@ impl<'a> Submap<'a> {
         if ix < 0 || iy < 0 || ix >= s || iy >= s {
             return None;
         }
-        self.cells.get((iy * s + ix) as usize).copied()
+        self.cells.as_ref().get((iy * s + ix) as usize).copied()
     }
 
     /// Probability of a cell; one half outside the submap.
@@ -223,95 +342,6 @@ impl<'a> Submap<'a> {
     /// The pose `world_pose` expressed in the submap frame.
     pub fn to_local(&self, world_pose: &Se2) -> Se2 {
         self.origin.between(world_pose)
-    }
-
-    fn update(&mut self, ix: i32, iy: i32, delta: i8) -> bool {
-        let s = self.params.side as i32;
-        if ix < 0 || iy < 0 || ix >= s || iy >= s {
-            return false;
-        }
-        let (lo, hi) = (self.params.min, self.params.max);
-        match self.cells.get_mut((iy * s + ix) as usize) {
-            Some(c) => {
-                *c = c.saturating_add(delta).clamp(lo, hi);
-                true
-            }
-            None => false,
-        }
-    }
-
-    /// Inserts a scan taken at `robot_pose` (world) by a sensor at `sensor` in the robot frame;
-    /// `points` are in the robot frame.
-    ///
-    /// # Errors
-    /// [`GridError::InvalidPose`] for a non-finite pose.
-    pub fn insert_scan(
-        &mut self,
-        robot_pose: &Se2,
-        sensor: &Se2,
-        points: &[ScanPoint],
-    ) -> Result<InsertStats, GridError> {
-        if !robot_pose.is_finite() || !sensor.is_finite() {
-            return Err(GridError::InvalidPose);
-        }
-        let local = self.to_local(robot_pose);
-        let (c, s) = (libm::cos(local.theta) as f32, libm::sin(local.theta) as f32);
-        let (tx, ty) = (local.x as f32, local.y as f32);
-        let to_local = |p: [f32; 2]| [tx + c * p[0] - s * p[1], ty + s * p[0] + c * p[1]];
-        let start = self.local_to_cell(to_local([sensor.x as f32, sensor.y as f32]));
-        let (sx, sy) = (libm::floorf(start[0]) as i32, libm::floorf(start[1]) as i32);
-        let mut stats = InsertStats::default();
-        // Longest ray walked: a diagonal of the grid plus the start's distance to it.
-        let side = self.params.side as i32;
-        let limit = 2 * side + sx.abs().max(sy.abs()) * 2 + 4;
-        let miss = self.params.miss;
-        for q in points {
-            let e = self.local_to_cell(to_local(q.p));
-            if !(e[0].is_finite() && e[1].is_finite()) {
-                continue;
-            }
-            let (ex, ey) = (libm::floorf(e[0]) as i32, libm::floorf(e[1]) as i32);
-            // Bresenham from the start cell, excluding the end cell.
-            let (dx, dy) = ((ex - sx).abs(), -(ey - sy).abs());
-            let (stx, sty) = (if sx < ex { 1 } else { -1 }, if sy < ey { 1 } else { -1 });
-            let (mut x, mut y, mut err) = (sx, sy, dx + dy);
-            let mut steps = 0;
-            while (x != ex || y != ey) && steps < limit {
-                if self.update(x, y, miss) {
-                    stats.misses += 1;
-                } else if (x < 0 && stx < 0)
-                    || (y < 0 && sty < 0)
-                    || (x >= side && stx > 0)
-                    || (y >= side && sty > 0)
-                {
-                    // Left the grid and moving away: the rest is outside too.
-                    break;
-                }
-                let e2 = 2 * err;
-                if e2 >= dy {
-                    err += dy;
-                    x += stx;
-                }
-                if e2 <= dx {
-                    err += dx;
-                    y += sty;
-                }
-                steps += 1;
-            }
-        }
-        let hit = self.params.hit;
-        for q in points {
-            let e = self.local_to_cell(to_local(q.p));
-            if !(e[0].is_finite() && e[1].is_finite()) {
-                continue;
-            }
-            if self.update(libm::floorf(e[0]) as i32, libm::floorf(e[1]) as i32, hit) {
-                stats.hits += 1;
-            } else {
-                stats.outside += 1;
-            }
-        }
-        Ok(stats)
     }
 
     /// Bilinearly interpolated probability at a point of the submap frame, and its gradient
@@ -402,6 +432,31 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        #[test]
+        fn cells_stay_within_the_clamps(
+            scans in proptest::collection::vec(
+                (
+                    (-3.0f64..3.0, -3.0f64..3.0, -4.0f64..4.0),
+                    proptest::collection::vec((-6.0f32..6.0, -6.0f32..6.0), 0..40),
+                ),
+                1..6,
+            ),
+        ) {
+            let params = GridParams { side: 40, ..GridParams::HOME };
+            let mut cells = [0i8; 40 * 40];
+            let mut m = Submap::new(Se2::new(0.1, -0.2, 0.3), params, &mut cells[..]).unwrap();
+            for ((x, y, t), pts) in &scans {
+                let pts: heapless::Vec<ScanPoint, 40> = pts.iter().map(|p| pt(p.0, p.1)).collect();
+                let s = m.insert_scan(&Se2::new(*x, *y, *t), &Se2::IDENTITY, &pts).unwrap();
+                proptest::prop_assert_eq!((s.hits + s.outside) as usize, pts.len());
+            }
+            for &c in m.cells() {
+                proptest::prop_assert!((params.min..=params.max).contains(&c));
+            }
+        }
+    }
+
     #[test]
     fn storage_and_params_are_checked() {
         let mut small = [0i8; 10];
@@ -459,6 +514,19 @@ mod tests {
             m.insert_scan(&Se2::new(f64::NAN, 0.0, 0.0), &Se2::IDENTITY, &[]),
             Err(GridError::InvalidPose)
         );
+        assert_eq!(
+            m.insert_scan(&Se2::new(1e12, 0.0, 0.0), &Se2::IDENTITY, &[]),
+            Err(GridError::InvalidPose)
+        );
+        // Absurd points are counted outside, never traced.
+        let s = m
+            .insert_scan(
+                &Se2::IDENTITY,
+                &Se2::IDENTITY,
+                &[pt(f32::MAX, 1.0), pt(f32::NAN, 0.0)],
+            )
+            .unwrap();
+        assert_eq!((s.hits, s.misses, s.outside), (0, 0, 2));
     }
 
     #[test]

@@ -181,6 +181,9 @@ fn linearize(query: &[ScanPoint], tree: &KdTree<'_>, pose: &Se2, cfg: &IcpConfig
         out.rows += 1;
     };
     for q in query {
+        if !(q.p[0].is_finite() && q.p[1].is_finite()) {
+            continue;
+        }
         let (px, py) = (q.p[0] as f64, q.p[1] as f64);
         let t = [pose.x + c * px - s * py, pose.y + s * px + c * py];
         let Some((r, _)) = tree.nearest([t[0] as f32, t[1] as f32], gate2) else {
@@ -221,7 +224,11 @@ fn solve_step(
 ) -> Result<(Vector3<f64>, Option<[f64; 3]>), MatchError> {
     let scale = Vector3::new(1.0, 1.0, 1.0 / radius);
     let sm = Matrix3::from_diagonal(&scale);
-    let eig = SymmetricEigen::new(sm * h * sm);
+    let hs = sm * h * sm;
+    if !hs.iter().all(|v| v.is_finite()) {
+        return Err(MatchError::IllConditioned);
+    }
+    let eig = SymmetricEigen::try_new(hs, f64::EPSILON, 200).ok_or(MatchError::IllConditioned)?;
     let (mut imin, mut imax) = (0, 0);
     for i in 1..3 {
         if eig.eigenvalues[i] < eig.eigenvalues[imin] {
@@ -300,6 +307,7 @@ pub fn align(
     let radius = {
         let s: f64 = query
             .iter()
+            .filter(|q| q.p[0].is_finite() && q.p[1].is_finite())
             .map(|q| (q.p[0] as f64) * (q.p[0] as f64) + (q.p[1] as f64) * (q.p[1] as f64))
             .sum();
         libm::sqrt(s / query.len() as f64).max(0.1)

@@ -442,6 +442,46 @@ pub(crate) mod tests {
         assert_eq!(s.points, 0);
     }
 
+    proptest::proptest! {
+        #[test]
+        fn counts_add_up_for_any_ranges(
+            ranges in proptest::collection::vec(
+                proptest::prop_oneof![
+                    proptest::num::f32::ANY,
+                    -1.0f32..40.0,
+                ],
+                0..400,
+            ),
+            decimation in 0u16..4,
+            voxel in proptest::prop_oneof![proptest::strategy::Just(0.0f32), 0.01f32..0.5],
+        ) {
+            let g = BeamGeometry {
+                angle_min: -2.0,
+                angle_increment: 0.01,
+                range_min: 0.1,
+                range_max: 30.0,
+            };
+            let cfg = PreprocessConfig {
+                decimation,
+                voxel_size: voxel,
+                ..PreprocessConfig::default()
+            };
+            let mut out: ScanPoints<256> = heapless::Vec::new();
+            let s = preprocess(&ranges, &g, &cfg, &mut out).unwrap();
+            let sum = s.nan + s.infinite + s.too_short + s.too_long + s.decimated + s.overflow
+                + s.voxel_merged + s.points;
+            proptest::prop_assert_eq!(sum, ranges.len() as u32);
+            proptest::prop_assert_eq!(s.points as usize, out.len());
+            for q in out.iter() {
+                proptest::prop_assert!(q.p[0].is_finite() && q.p[1].is_finite());
+                let r = libm::sqrtf(q.p[0] * q.p[0] + q.p[1] * q.p[1]);
+                proptest::prop_assert!(r <= 30.0 + 1e-3);
+                let n = q.n[0] * q.n[0] + q.n[1] * q.n[1];
+                proptest::prop_assert!(n == 0.0 || (n - 1.0).abs() < 1e-4);
+            }
+        }
+    }
+
     #[test]
     fn invalid_geometry_is_an_error() {
         let g = BeamGeometry {
