@@ -4,13 +4,19 @@
 //! Why point-to-line ICP rather than Gauss-Newton on the interpolated grid (Cartographer's
 //! ceres matcher): the grid cost is the bilinear interpolation of 5 cm cells, whose basin of
 //! attraction is about one cell, so it needs a correlative pre-search for a 20 cm / 5 degree
-//! seed error, and its optimum is pulled by the cell quantization of hits. Nearest-neighbour
-//! correspondences with line normals converge from several decimetres, model walls as lines
-//! (sub-millimetre on clean data), give an exact Gauss-Newton Hessian for the information
-//! matrix, and expose degenerate geometry directly in that Hessian. The same routine serves
-//! scan-to-scan matching, where there is no grid at all. The reference of scan-to-submap
-//! matching is the submap's occupied cells with normals fitted over their neighbourhood
-//! ([`Submap::occupied_points`](crate::frontend::grid::Submap::occupied_points)).
+//! seed error, and its optimum is biased by where hits fall inside their cells (up to half a
+//! cell per wall; the test `scan_to_grid_cells_is_within_half_a_cell` shows the same bias for
+//! ICP against cell centres). Nearest-neighbour correspondences with line normals converge
+//! from several decimetres, model walls as lines (under a centimetre from a 20 cm / 5 degree
+//! seed in the tests), give a Gauss-Newton Hessian for the information matrix, and expose
+//! degenerate geometry directly in that Hessian. The same routine serves scan-to-scan
+//! matching, where there is no grid at all.
+//!
+//! References: for LiDAR odometry, the voxel-thinned points of the current submap's keyframes
+//! ([`PointMap`](crate::frontend::pointmap::PointMap)); for loop refinement, a keyframe scan,
+//! or an old submap's occupied cells with fitted normals
+//! ([`Submap::occupied_points`](crate::frontend::grid::Submap::occupied_points), half-cell
+//! accurate).
 //!
 //! Each iteration: transform the query points by the current pose; find the nearest
 //! reference point within the gate; residual = distance to the reference point's line (or to
