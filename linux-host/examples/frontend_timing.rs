@@ -3,7 +3,7 @@
 //! the odometry against the GMapping reference poses over consecutive reference pairs.
 //!
 //! `cargo run --release -p cloi-host --example frontend_timing -- [LOG.clf] [MAX_SCANS]`
-//! (default `../shared/data/carmen/intel.clf`, 3,000 scans). A minimal FLASER reader is
+//! (default `../shared/data/carmen/intel.clf`, 3,000 scans; `SUBMAP=home` for 4.1 m submaps). A minimal FLASER reader is
 //! included so the example does not depend on the host's IO layer.
 
 use std::collections::HashMap;
@@ -91,7 +91,14 @@ fn main() -> Result<()> {
         allow_degenerate: true,
         ..IcpConfig::default()
     };
-    let params = GridParams::LARGE;
+    // SUBMAP=home: the 4.1 m submaps (82 x 82) instead of the 10 m ones (200 x 200).
+    let home = std::env::var("SUBMAP").is_ok_and(|v| v == "home");
+    let params = if home {
+        GridParams::HOME
+    } else {
+        GridParams::LARGE
+    };
+    let new_submap_after = if home { 1.5 } else { 3.0 };
     let mut cells = vec![0i8; params.cells()];
     let mut pyramid_storage = vec![0u8; Pyramid::storage_len(params.side as usize, 5)];
     let mut points = Box::new(PointMap::<4096>::new(0.05));
@@ -166,7 +173,7 @@ fn main() -> Result<()> {
         }
         if keyframes.offer(&pose) {
             let o = submap.origin();
-            if (pose.x - o.x).hypot(pose.y - o.y) > 3.0 {
+            if (pose.x - o.x).hypot(pose.y - o.y) > new_submap_after {
                 // A new submap centred on the robot.
                 submap = Submap::new(pose, params, &mut cells)?;
                 points.clear();
