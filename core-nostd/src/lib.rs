@@ -8,6 +8,8 @@
 //! * [`geom`]: SE(2) poses, Jacobians, covariance compounding, Mahalanobis distances, and the
 //!   information heuristic of eq. (1).
 //! * [`storage`]: fixed-capacity pools with typed ids and queues.
+//! * [`frontend`]: odometry fusion, scan preprocessing, occupancy-grid submaps, ICP, the
+//!   correlative loop-closure search and the keyframe decision (paper section III-B).
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
