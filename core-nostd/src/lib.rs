@@ -13,6 +13,8 @@
 //!   max-mixtures.
 //! * [`sensor`]: sensor frames lent to the core (time stamps, odometry, IMU, laser scans,
 //!   camera images) and the scan checks.
+//! * [`frontend`]: odometry fusion, scan preprocessing, occupancy-grid submaps, ICP, the
+//!   correlative loop-closure search and the keyframe decision (paper section III-B).
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
@@ -31,11 +33,12 @@ mod fmt;
 
 pub mod backend;
 pub mod error;
+pub mod frontend;
 pub mod geom;
 pub mod graph;
 pub mod profile;
-pub mod solver;
 pub mod sensor;
+pub mod solver;
 pub mod storage;
 pub mod workload;
 

@@ -6,6 +6,10 @@
 
 use nalgebra::{Matrix3, Vector3};
 
+use crate::frontend::{
+    align, preprocess, BeamGeometry, GridParams, IcpConfig, PointMap, PreprocessConfig, ScanPoints,
+    Submap,
+};
 use crate::geom::{pose_squared_mahalanobis, Se2, UncertainPose};
 
 /// A measured section of the workload.
@@ -22,16 +26,20 @@ pub enum Section {
     /// Gauss-Newton solve of a 24-node pose graph with loop closures (ordering, sparse
     /// factorizations, iterations), all storage on the stack (about 18 KiB).
     PoseGraphSolve,
+    /// A synthetic room scan inserted into a `home` submap, then a displaced scan matched to
+    /// it by point-to-line ICP.
+    ScanMatch,
 }
 
 impl Section {
     /// Every section, in the order the firmware runs them.
-    pub const ALL: [Section; 5] = [
+    pub const ALL: [Section; 6] = [
         Section::Se2Chain,
         Section::CovarianceCompound,
         Section::ExpLog,
         Section::Mahalanobis,
         Section::PoseGraphSolve,
+        Section::ScanMatch,
     ];
 
     /// Stable name used in the firmware's output.
@@ -42,6 +50,7 @@ impl Section {
             Section::ExpLog => "exp_log",
             Section::Mahalanobis => "mahalanobis",
             Section::PoseGraphSolve => "pose_graph_solve",
+            Section::ScanMatch => "scan_match",
         }
     }
 
@@ -53,6 +62,7 @@ impl Section {
             Section::ExpLog => exp_log(5_000),
             Section::Mahalanobis => mahalanobis(5_000),
             Section::PoseGraphSolve => pose_graph_solve(),
+            Section::ScanMatch => scan_match(),
         }
     }
 }
@@ -202,6 +212,90 @@ fn pose_graph_solve() -> f64 {
     }
 }
 
+/// Beams of the synthetic scan of [`Section::ScanMatch`].
+const SCAN_BEAMS: usize = 180;
+
+/// Range along a ray from `o` at `angle` to the walls of a 4 m x 3 m room with a pillar.
+fn room_range(o: [f64; 2], angle: f64) -> f32 {
+    const WALLS: [[f64; 4]; 8] = [
+        [-1.5, -1.2, 2.5, -1.2],
+        [2.5, -1.2, 2.5, 1.8],
+        [2.5, 1.8, -1.5, 1.8],
+        [-1.5, 1.8, -1.5, -1.2],
+        [0.6, 0.4, 1.0, 0.4],
+        [1.0, 0.4, 1.0, 0.7],
+        [1.0, 0.7, 0.6, 0.7],
+        [0.6, 0.7, 0.6, 0.4],
+    ];
+    let (dx, dy) = (libm::cos(angle), libm::sin(angle));
+    let mut best = f64::INFINITY;
+    for w in WALLS {
+        let (ex, ey) = (w[2] - w[0], w[3] - w[1]);
+        let den = dx * ey - dy * ex;
+        if libm::fabs(den) < 1e-12 {
+            continue;
+        }
+        let (ox, oy) = (w[0] - o[0], w[1] - o[1]);
+        let t = (ox * ey - oy * ex) / den;
+        let u = (ox * dy - oy * dx) / den;
+        if t > 1e-9 && (0.0..=1.0).contains(&u) && t < best {
+            best = t;
+        }
+    }
+    best as f32
+}
+
+fn room_scan(pose: Se2, out: &mut ScanPoints<SCAN_BEAMS>) {
+    let mut ranges = [0.0f32; SCAN_BEAMS];
+    let inc = 2.0 * core::f64::consts::PI / SCAN_BEAMS as f64;
+    for (i, r) in ranges.iter_mut().enumerate() {
+        *r = room_range(
+            [pose.x, pose.y],
+            pose.theta - core::f64::consts::PI + inc * i as f64,
+        );
+    }
+    let geometry = BeamGeometry {
+        angle_min: -core::f32::consts::PI,
+        angle_increment: inc as f32,
+        range_min: 0.05,
+        range_max: 12.0,
+    };
+    // The geometry is valid by construction.
+    let _ = preprocess(&ranges, &geometry, &PreprocessConfig::default(), out);
+}
+
+fn scan_match() -> f64 {
+    let mut first: ScanPoints<SCAN_BEAMS> = heapless::Vec::new();
+    room_scan(Se2::IDENTITY, &mut first);
+    let mut cells = [0i8; GridParams::HOME.cells()];
+    let Ok(mut submap) = Submap::new(Se2::new(0.5, 0.3, 0.0), GridParams::HOME, &mut cells) else {
+        return f64::NAN;
+    };
+    let inserted = submap.insert_scan(&Se2::IDENTITY, &Se2::IDENTITY, &first);
+    let mut points = PointMap::<256>::new(GridParams::HOME.resolution);
+    points.insert(&Se2::IDENTITY, &first, 12.0);
+    let truth = Se2::new(0.25, -0.15, 0.1);
+    let mut second: ScanPoints<SCAN_BEAMS> = heapless::Vec::new();
+    room_scan(truth, &mut second);
+    let seed = truth.compose(&Se2::new(0.12, -0.08, -0.06));
+    let tree = points.tree();
+    let cell_sum: i64 = submap.cells().iter().map(|&c| c as i64).sum();
+    let hits = inserted.map_or(-1.0, |s| s.hits as f64 + 1e-3 * s.misses as f64);
+    match align(&second, &tree, &seed, &IcpConfig::default()) {
+        Ok(r) => {
+            r.pose.x * 1e3
+                + r.pose.y * 1e2
+                + r.pose.theta * 10.0
+                + r.iterations as f64
+                + r.fitness as f64
+                + r.information.trace() * 1e-9
+                + cell_sum as f64 * 1e-3
+                + hits
+        }
+        Err(_) => -1.0,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -231,5 +325,26 @@ mod tests {
             xs += libm::sin(t);
         }
         assert!(libm::fabs(Section::ExpLog.run() - xs) < 1e-9);
+    }
+
+    #[test]
+    fn scan_match_recovers_the_displacement() {
+        let mut first: ScanPoints<SCAN_BEAMS> = heapless::Vec::new();
+        room_scan(Se2::IDENTITY, &mut first);
+        assert_eq!(first.len(), SCAN_BEAMS);
+        let mut points = PointMap::<256>::new(0.05);
+        points.insert(&Se2::IDENTITY, &first, 12.0);
+        let truth = Se2::new(0.25, -0.15, 0.1);
+        let mut second: ScanPoints<SCAN_BEAMS> = heapless::Vec::new();
+        room_scan(truth, &mut second);
+        let tree = points.tree();
+        let seed = truth.compose(&Se2::new(0.12, -0.08, -0.06));
+        let r = align(&second, &tree, &seed, &IcpConfig::default()).unwrap();
+        let d = r.pose.between(&truth);
+        assert!(
+            libm::sqrt(d.x * d.x + d.y * d.y) < 0.01 && libm::fabs(d.theta) < 0.0035,
+            "{r:?}"
+        );
+        assert!(Section::ScanMatch.run() > 0.0);
     }
 }

@@ -6,10 +6,10 @@
 pub mod cli;
 pub mod corrupt;
 pub mod dataset;
+pub mod eval;
 pub mod graph_io;
+pub mod io;
 pub mod optimize;
 pub mod prune;
 pub mod prune_online;
-pub mod eval;
-pub mod io;
 pub mod sim;

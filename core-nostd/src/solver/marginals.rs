@@ -38,14 +38,17 @@ pub fn marginal_information_traces(
     }
     let gauge_first = ordering::gauge_fixes_first(edges);
     for (t, e) in ws.edge_trig.iter_mut().zip(edges.iter()) {
-        *t = [libm::cos(e.measurement.theta), libm::sin(e.measurement.theta)];
+        *t = [
+            libm::cos(e.measurement.theta),
+            libm::sin(e.measurement.theta),
+        ];
     }
     // Every edge in, max-mixtures on their current component; then assemble and factorize at
     // the current estimate (the step it solves is discarded).
     ws.key.valid = false;
     let mut report = super::SolveReport::default();
     refresh_structure(nodes, edges, ws, gauge_first, n, Warm::Off, &mut report)?;
-    linear_step(nodes, edges, ws, 0.0, false, Stage::Full, Warm::Off)?;
+    linear_step(nodes, edges, ws, 0.0, false, Stage::Full, Warm::Off, 0.0)?;
     ws.key.valid = false;
     let vars = ws.key.vars;
     for (i, o) in out.iter_mut().enumerate().take(n) {

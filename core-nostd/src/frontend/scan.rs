@@ -1,0 +1,555 @@
+//! Scan preprocessing: from raw ranges to a fixed-capacity set of points with normals.
+//!
+//! Steps, in order:
+//! 1. every beam is checked: NaN, infinite, below `range_min` or above `range_max` beams are
+//!    dropped and counted in [`ScanStats`] (never an error);
+//! 2. optional angular decimation keeps one beam in `decimation`;
+//! 3. the kept beams become points in the **robot** frame through the sensor mounting offset;
+//! 4. each point gets a normal from a line fitted (2x2 principal axes) to its angular
+//!    neighbours that lie close to it; points on no clear line get a zero normal;
+//! 5. optional voxel-grid downsampling: points are sorted in place by voxel key and every
+//!    voxel is replaced by the centroid of its points (and the mean of their normals). No
+//!    scratch memory is needed; the angular order is lost, which nothing later depends on.
+//!
+//! The geometry is a small struct of our own ([`BeamGeometry`]) so that the sensor layer's
+//! scan view can be adapted to it in one line.
+
+use core::fmt;
+
+use crate::geom::Se2;
+
+/// Largest number of points a scan keeps: 1081, the beam count of a 270 degree scanner with
+/// a quarter-degree step (Hokuyo UTM-30LX), the densest scanner in the benchmark logs.
+pub const MAX_POINTS: usize = 1081;
+
+/// One preprocessed point: position and unit normal in the robot frame (normal `[0, 0]` when
+/// none could be estimated).
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ScanPoint {
+    /// Position, metres.
+    pub p: [f32; 2],
+    /// Unit normal, or `[0, 0]`.
+    pub n: [f32; 2],
+}
+
+impl ScanPoint {
+    /// True when the point carries a normal.
+    #[inline]
+    pub fn has_normal(&self) -> bool {
+        self.n[0] != 0.0 || self.n[1] != 0.0
+    }
+}
+
+/// A preprocessed scan of at most `N` points.
+pub type ScanPoints<const N: usize = MAX_POINTS> = heapless::Vec<ScanPoint, N>;
+
+/// Beam geometry of a planar range scanner.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct BeamGeometry {
+    /// Angle of the first beam in the sensor frame, radians.
+    pub angle_min: f32,
+    /// Angle between consecutive beams, radians (may be negative).
+    pub angle_increment: f32,
+    /// Shortest valid range, metres.
+    pub range_min: f32,
+    /// Longest valid range, metres.
+    pub range_max: f32,
+}
+
+/// Preprocessing parameters.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct PreprocessConfig {
+    /// Pose of the sensor in the robot frame.
+    pub mounting: Se2,
+    /// Keep one beam in `decimation` (1 keeps every beam; 0 is treated as 1).
+    pub decimation: u16,
+    /// Voxel edge for downsampling, metres; `0` disables it.
+    pub voxel_size: f32,
+    /// Angular neighbours on each side used for a normal.
+    pub normal_neighbours: u8,
+    /// Neighbours farther than this from the point are not used for its normal, metres.
+    pub normal_max_distance: f32,
+    /// A normal is kept only when the line fit is this flat: smallest over largest
+    /// eigenvalue of the neighbours' scatter.
+    pub normal_max_flatness: f32,
+}
+
+impl Default for PreprocessConfig {
+    fn default() -> Self {
+        PreprocessConfig {
+            mounting: Se2::IDENTITY,
+            decimation: 1,
+            voxel_size: 0.0,
+            normal_neighbours: 3,
+            normal_max_distance: 0.25,
+            normal_max_flatness: 0.1,
+        }
+    }
+}
+
+/// What preprocessing dropped and kept.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ScanStats {
+    /// Beams in the input.
+    pub beams: u32,
+    /// NaN ranges.
+    pub nan: u32,
+    /// Infinite ranges.
+    pub infinite: u32,
+    /// Ranges below `range_min` (including negative ones).
+    pub too_short: u32,
+    /// Ranges above `range_max`.
+    pub too_long: u32,
+    /// Valid beams skipped by angular decimation.
+    pub decimated: u32,
+    /// Valid beams dropped because the point set was full.
+    pub overflow: u32,
+    /// Points merged away by voxel downsampling.
+    pub voxel_merged: u32,
+    /// Points left.
+    pub points: u32,
+    /// Points left with a normal.
+    pub with_normal: u32,
+}
+
+/// Scan preprocessing errors (bad beams are counted, not errors).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ScanError {
+    /// The beam geometry is not finite, `range_min` is negative or above `range_max`, or
+    /// the mounting pose is not finite.
+    InvalidGeometry,
+}
+
+impl fmt::Display for ScanError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ScanError::InvalidGeometry => f.write_str("invalid scan geometry or mounting pose"),
+        }
+    }
+}
+
+impl core::error::Error for ScanError {}
+
+/// Preprocesses one scan into `out` (cleared first) and returns the counts.
+///
+/// # Errors
+/// [`ScanError::InvalidGeometry`] for a geometry that cannot describe a scan.
+pub fn preprocess<const N: usize>(
+    ranges: &[f32],
+    geometry: &BeamGeometry,
+    config: &PreprocessConfig,
+    out: &mut ScanPoints<N>,
+) -> Result<ScanStats, ScanError> {
+    out.clear();
+    let g = geometry;
+    if !(g.angle_min.is_finite()
+        && g.angle_increment.is_finite()
+        && g.range_min.is_finite()
+        && g.range_max.is_finite()
+        && g.range_min >= 0.0
+        && g.range_min <= g.range_max
+        && config.mounting.is_finite())
+    {
+        return Err(ScanError::InvalidGeometry);
+    }
+    let mut stats = ScanStats {
+        beams: ranges.len() as u32,
+        ..ScanStats::default()
+    };
+    let decimation = config.decimation.max(1) as u32;
+    let (ms, mc) = (
+        libm::sin(config.mounting.theta) as f32,
+        libm::cos(config.mounting.theta) as f32,
+    );
+    let (mx, my) = (config.mounting.x as f32, config.mounting.y as f32);
+    let mut valid = 0u32;
+    for (i, &r) in ranges.iter().enumerate() {
+        if r.is_nan() {
+            stats.nan += 1;
+            continue;
+        }
+        if r.is_infinite() {
+            stats.infinite += 1;
+            continue;
+        }
+        if r < g.range_min {
+            stats.too_short += 1;
+            continue;
+        }
+        if r > g.range_max {
+            stats.too_long += 1;
+            continue;
+        }
+        valid += 1;
+        if !(valid - 1).is_multiple_of(decimation) {
+            stats.decimated += 1;
+            continue;
+        }
+        let a = g.angle_min + g.angle_increment * i as f32;
+        let (sx, sy) = (r * libm::cosf(a), r * libm::sinf(a));
+        let p = [mx + mc * sx - ms * sy, my + ms * sx + mc * sy];
+        if out.push(ScanPoint { p, n: [0.0, 0.0] }).is_err() {
+            stats.overflow += 1;
+        }
+    }
+    estimate_normals(out, [mx, my], config);
+    if config.voxel_size > 0.0 && config.voxel_size.is_finite() {
+        stats.voxel_merged = voxel_downsample(out, config.voxel_size) as u32;
+    }
+    stats.points = out.len() as u32;
+    stats.with_normal = out.iter().filter(|p| p.has_normal()).count() as u32;
+    Ok(stats)
+}
+
+/// Unit normal of the best line through `pts` (principal axis of least spread), with the
+/// ratio of the smallest to the largest scatter eigenvalue. `None` for fewer than 3 points.
+pub fn fit_normal(pts: impl Iterator<Item = [f32; 2]> + Clone) -> Option<([f32; 2], f32)> {
+    let (mut n, mut sx, mut sy) = (0u32, 0.0f32, 0.0f32);
+    for p in pts.clone() {
+        n += 1;
+        sx += p[0];
+        sy += p[1];
+    }
+    if n < 3 {
+        return None;
+    }
+    let (cx, cy) = (sx / n as f32, sy / n as f32);
+    let (mut a, mut b, mut c) = (0.0f32, 0.0f32, 0.0f32);
+    for p in pts {
+        let (dx, dy) = (p[0] - cx, p[1] - cy);
+        a += dx * dx;
+        b += dx * dy;
+        c += dy * dy;
+    }
+    // Eigenvalues of [[a, b], [b, c]].
+    let half_tr = 0.5 * (a + c);
+    let disc = libm::sqrtf(0.25 * (a - c) * (a - c) + b * b);
+    let (l_max, l_min) = (half_tr + disc, half_tr - disc);
+    if l_max <= 0.0 {
+        return None;
+    }
+    // Eigenvector of the smallest eigenvalue.
+    let (vx, vy) = if libm::fabsf(b) > 1e-12 * l_max {
+        (b, l_min - a)
+    } else if a <= c {
+        (1.0, 0.0)
+    } else {
+        (0.0, 1.0)
+    };
+    let norm = libm::sqrtf(vx * vx + vy * vy);
+    if norm <= 0.0 {
+        return None;
+    }
+    Some(([vx / norm, vy / norm], l_min.max(0.0) / l_max))
+}
+
+fn estimate_normals<const N: usize>(
+    pts: &mut ScanPoints<N>,
+    sensor: [f32; 2],
+    c: &PreprocessConfig,
+) {
+    let k = c.normal_neighbours as usize;
+    let max_d2 = c.normal_max_distance * c.normal_max_distance;
+    for i in 0..pts.len() {
+        let centre = pts[i].p;
+        let lo = i.saturating_sub(k);
+        let hi = (i + k + 1).min(pts.len());
+        let near = pts[lo..hi].iter().map(|q| q.p).filter(move |q| {
+            let (dx, dy) = (q[0] - centre[0], q[1] - centre[1]);
+            dx * dx + dy * dy <= max_d2
+        });
+        let normal = match fit_normal(near) {
+            Some((n, flat)) if flat <= c.normal_max_flatness => {
+                // Point the normal towards the sensor.
+                let to_sensor = [sensor[0] - centre[0], sensor[1] - centre[1]];
+                if n[0] * to_sensor[0] + n[1] * to_sensor[1] < 0.0 {
+                    [-n[0], -n[1]]
+                } else {
+                    n
+                }
+            }
+            _ => [0.0, 0.0],
+        };
+        pts[i].n = normal;
+    }
+}
+
+fn voxel_key(p: &[f32; 2], inv: f32) -> (i32, i32) {
+    (
+        libm::floorf(p[0] * inv) as i32,
+        libm::floorf(p[1] * inv) as i32,
+    )
+}
+
+/// Replaces the points of every voxel by their centroid (normals averaged and renormalised;
+/// zero when they cancel or none had one). Returns how many points were merged away.
+pub fn voxel_downsample<const N: usize>(pts: &mut ScanPoints<N>, voxel: f32) -> usize {
+    let inv = 1.0 / voxel;
+    pts.sort_unstable_by_key(|a| voxel_key(&a.p, inv));
+    let before = pts.len();
+    let mut write = 0usize;
+    let mut read = 0usize;
+    while read < before {
+        let key = voxel_key(&pts[read].p, inv);
+        let mut end = read + 1;
+        while end < before && voxel_key(&pts[end].p, inv) == key {
+            end += 1;
+        }
+        let count = (end - read) as f32;
+        let (mut sx, mut sy, mut nx, mut ny) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
+        let first_n = pts[read].n;
+        for q in &pts[read..end] {
+            sx += q.p[0];
+            sy += q.p[1];
+            // Align signs with the first normal before averaging.
+            let sign = if q.n[0] * first_n[0] + q.n[1] * first_n[1] < 0.0 {
+                -1.0
+            } else {
+                1.0
+            };
+            nx += sign * q.n[0];
+            ny += sign * q.n[1];
+        }
+        let norm = libm::sqrtf(nx * nx + ny * ny);
+        let n = if norm > 1e-3 {
+            [nx / norm, ny / norm]
+        } else {
+            [0.0, 0.0]
+        };
+        pts[write] = ScanPoint {
+            p: [sx / count, sy / count],
+            n,
+        };
+        write += 1;
+        read = end;
+    }
+    pts.truncate(write);
+    before - write
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    /// A tiny ray caster over closed polygons, for synthetic scans in tests.
+    pub(crate) fn ray_cast(origin: [f64; 2], angle: f64, walls: &[[f64; 4]]) -> f64 {
+        let (dx, dy) = (libm::cos(angle), libm::sin(angle));
+        let mut best = f64::INFINITY;
+        for w in walls {
+            let (ex, ey) = (w[2] - w[0], w[3] - w[1]);
+            let den = dx * ey - dy * ex;
+            if den.abs() < 1e-12 {
+                continue;
+            }
+            let (ox, oy) = (w[0] - origin[0], w[1] - origin[1]);
+            let t = (ox * ey - oy * ex) / den;
+            let u = (ox * dy - oy * dx) / den;
+            if t > 1e-9 && (0.0..=1.0).contains(&u) && t < best {
+                best = t;
+            }
+        }
+        best
+    }
+
+    /// Walls of a polygon given by its corners.
+    pub(crate) fn polygon(corners: &[[f64; 2]], out: &mut heapless::Vec<[f64; 4], 32>) {
+        for i in 0..corners.len() {
+            let a = corners[i];
+            let b = corners[(i + 1) % corners.len()];
+            out.push([a[0], a[1], b[0], b[1]]).unwrap();
+        }
+    }
+
+    /// An L-shaped room with a pillar: rich enough geometry for matching.
+    pub(crate) fn room() -> heapless::Vec<[f64; 4], 32> {
+        let mut w = heapless::Vec::new();
+        polygon(
+            &[
+                [-2.0, -1.5],
+                [3.0, -1.5],
+                [3.0, 0.5],
+                [1.5, 0.5],
+                [1.5, 2.5],
+                [-2.0, 2.5],
+            ],
+            &mut w,
+        );
+        polygon(
+            &[[-0.8, 0.8], [-0.4, 0.8], [-0.4, 1.2], [-0.8, 1.2]],
+            &mut w,
+        );
+        w
+    }
+
+    /// Ranges of a full-circle scanner with `n` beams at `pose` (sensor = robot frame).
+    pub(crate) fn scan_at(
+        pose: Se2,
+        n: usize,
+        walls: &[[f64; 4]],
+        out: &mut [f32],
+    ) -> BeamGeometry {
+        let inc = 2.0 * core::f64::consts::PI / n as f64;
+        let amin = -core::f64::consts::PI;
+        for (i, r) in out.iter_mut().enumerate().take(n) {
+            let a = pose.theta + amin + inc * i as f64;
+            *r = ray_cast([pose.x, pose.y], a, walls) as f32;
+        }
+        BeamGeometry {
+            angle_min: amin as f32,
+            angle_increment: inc as f32,
+            range_min: 0.05,
+            range_max: 20.0,
+        }
+    }
+
+    #[test]
+    fn bad_beams_are_counted_and_dropped() {
+        let ranges = [
+            1.0,
+            f32::NAN,
+            f32::INFINITY,
+            -1.0,
+            0.01,
+            50.0,
+            2.0,
+            f32::NEG_INFINITY,
+        ];
+        let g = BeamGeometry {
+            angle_min: 0.0,
+            angle_increment: 0.1,
+            range_min: 0.1,
+            range_max: 30.0,
+        };
+        let mut out: ScanPoints<16> = heapless::Vec::new();
+        let s = preprocess(&ranges, &g, &PreprocessConfig::default(), &mut out).unwrap();
+        assert_eq!(s.beams, 8);
+        assert_eq!(s.nan, 1);
+        assert_eq!(s.infinite, 2);
+        assert_eq!(s.too_short, 2);
+        assert_eq!(s.too_long, 1);
+        assert_eq!(s.points, 2);
+        assert_eq!(out.len(), 2);
+        assert!((out[0].p[0] - 1.0).abs() < 1e-6 && out[0].p[1].abs() < 1e-6);
+        let a = 0.6f32;
+        assert!((out[1].p[0] - 2.0 * a.cos()).abs() < 1e-5);
+        // An empty scan is fine.
+        let s = preprocess(&[], &g, &PreprocessConfig::default(), &mut out).unwrap();
+        assert_eq!(s.points, 0);
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn counts_add_up_for_any_ranges(
+            ranges in proptest::collection::vec(
+                proptest::prop_oneof![
+                    proptest::num::f32::ANY,
+                    -1.0f32..40.0,
+                ],
+                0..400,
+            ),
+            decimation in 0u16..4,
+            voxel in proptest::prop_oneof![proptest::strategy::Just(0.0f32), 0.01f32..0.5],
+        ) {
+            let g = BeamGeometry {
+                angle_min: -2.0,
+                angle_increment: 0.01,
+                range_min: 0.1,
+                range_max: 30.0,
+            };
+            let cfg = PreprocessConfig {
+                decimation,
+                voxel_size: voxel,
+                ..PreprocessConfig::default()
+            };
+            let mut out: ScanPoints<256> = heapless::Vec::new();
+            let s = preprocess(&ranges, &g, &cfg, &mut out).unwrap();
+            let sum = s.nan + s.infinite + s.too_short + s.too_long + s.decimated + s.overflow
+                + s.voxel_merged + s.points;
+            proptest::prop_assert_eq!(sum, ranges.len() as u32);
+            proptest::prop_assert_eq!(s.points as usize, out.len());
+            for q in out.iter() {
+                proptest::prop_assert!(q.p[0].is_finite() && q.p[1].is_finite());
+                let r = libm::sqrtf(q.p[0] * q.p[0] + q.p[1] * q.p[1]);
+                proptest::prop_assert!(r <= 30.0 + 1e-3);
+                let n = q.n[0] * q.n[0] + q.n[1] * q.n[1];
+                proptest::prop_assert!(n == 0.0 || (n - 1.0).abs() < 1e-4);
+            }
+        }
+    }
+
+    #[test]
+    fn invalid_geometry_is_an_error() {
+        let g = BeamGeometry {
+            angle_min: 0.0,
+            angle_increment: f32::NAN,
+            range_min: 0.1,
+            range_max: 30.0,
+        };
+        let mut out: ScanPoints<4> = heapless::Vec::new();
+        assert_eq!(
+            preprocess(&[1.0], &g, &PreprocessConfig::default(), &mut out),
+            Err(ScanError::InvalidGeometry)
+        );
+    }
+
+    #[test]
+    fn mounting_offset_decimation_and_overflow() {
+        let g = BeamGeometry {
+            angle_min: 0.0,
+            angle_increment: 0.0,
+            range_min: 0.1,
+            range_max: 30.0,
+        };
+        let cfg = PreprocessConfig {
+            mounting: Se2::new(0.2, 0.1, core::f64::consts::FRAC_PI_2),
+            decimation: 2,
+            ..PreprocessConfig::default()
+        };
+        let mut out: ScanPoints<2> = heapless::Vec::new();
+        let s = preprocess(&[1.0; 7], &g, &cfg, &mut out).unwrap();
+        assert_eq!(s.decimated, 3);
+        assert_eq!(s.overflow, 2);
+        assert_eq!(out.len(), 2);
+        // Beam along the sensor x axis = robot y axis, from (0.2, 0.1).
+        assert!((out[0].p[0] - 0.2).abs() < 1e-6 && (out[0].p[1] - 1.1).abs() < 1e-6);
+    }
+
+    #[test]
+    fn normals_face_the_sensor_and_voxels_merge() {
+        let walls = room();
+        let mut ranges = [0.0f32; 720];
+        let g = scan_at(Se2::IDENTITY, 720, &walls, &mut ranges);
+        let mut out: ScanPoints = heapless::Vec::new();
+        let s = preprocess(&ranges, &g, &PreprocessConfig::default(), &mut out).unwrap();
+        assert_eq!(s.points, 720);
+        assert!(s.with_normal > 650, "{s:?}");
+        // Points on the wall y = -1.5 (away from corners) have normal (0, 1).
+        let mut checked = 0;
+        for q in out
+            .iter()
+            .filter(|q| (q.p[1] + 1.5).abs() < 1e-3 && q.p[0].abs() < 1.0)
+        {
+            assert!((q.n[1] - 1.0).abs() < 1e-3 && q.n[0].abs() < 0.05, "{q:?}");
+            checked += 1;
+        }
+        assert!(checked > 20);
+        let cfg = PreprocessConfig {
+            voxel_size: 0.1,
+            ..PreprocessConfig::default()
+        };
+        let s2 = preprocess(&ranges, &g, &cfg, &mut out).unwrap();
+        assert_eq!(s2.points + s2.voxel_merged, 720);
+        assert!(s2.points < 300, "{s2:?}");
+        // One point per voxel.
+        for (i, a) in out.iter().enumerate() {
+            for b in &out[i + 1..] {
+                assert_ne!(voxel_key(&a.p, 10.0), voxel_key(&b.p, 10.0));
+            }
+        }
+    }
+}
