@@ -123,8 +123,6 @@ pub struct PruneJson {
     pub tree_edges_merged: usize,
     /// Outlier loop closures dropped during elimination.
     pub outliers_dropped: usize,
-    /// Largest offset between a tree edge and the current relative pose, metres.
-    pub max_tree_offset_m: f64,
 }
 
 /// ARPS, the average relative pose shift: the mean over kept nodes of
@@ -290,6 +288,11 @@ pub fn prune_file(args: &PruneArgs) -> Result<Pruned> {
         method: Method::GaussNewton,
         ..SolverOptions::default()
     };
+    // The pruned graph starts next to its optimum: no linear re-initialisation.
+    let warm = SolverOptions {
+        linear_init: false,
+        ..options
+    };
 
     // 1. The full optimum: the reference for ARPS.
     let mut ws = HostWorkspace::new(n, edge_capacity, (16 * n).max(2 * edge_capacity) + 1024);
@@ -376,7 +379,7 @@ pub fn prune_file(args: &PruneArgs) -> Result<Pruned> {
 
         // 3. Optimize the pruned graph.
         let t2 = Instant::now();
-        if let Err(f) = ws.solve(&mut g, &options) {
+        if let Err(f) = ws.solve(&mut g, &warm) {
             bail!("optimizing the pruned graph: {f} (pruning: {report:?})");
         }
         optimize_times.push(t2.elapsed().as_secs_f64() * 1e3);
@@ -434,7 +437,6 @@ pub fn prune_file(args: &PruneArgs) -> Result<Pruned> {
         tree_edges_added: report.tree_edges_added,
         tree_edges_merged: report.tree_edges_merged,
         outliers_dropped: report.outliers_dropped,
-        max_tree_offset_m: report.max_tree_offset_m,
     };
     let ids = (0..n)
         .filter(|&i| order[i] != u32::MAX)

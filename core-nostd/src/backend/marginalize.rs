@@ -86,8 +86,21 @@ impl core::fmt::Display for MarginalizeError {
 impl core::error::Error for MarginalizeError {}
 
 /// Linearization of one factor: `(J_from, J_to)` of its g2o-convention error.
+#[cfg(test)]
 fn factor_jacobians(
     poses: &[Se2],
+    f: &LocalFactor,
+) -> Result<(Matrix3<f64>, Matrix3<f64>), MarginalizeError> {
+    let xi = poses
+        .get(usize::from(f.from))
+        .ok_or(MarginalizeError::BadIndex)?;
+    factor_jacobians_trig(poses, (libm::cos(xi.theta), libm::sin(xi.theta)), f)
+}
+
+/// [`factor_jacobians`] with `(cos, sin)` of the first pose's heading already known.
+fn factor_jacobians_trig(
+    poses: &[Se2],
+    (ci, si): (f64, f64),
     f: &LocalFactor,
 ) -> Result<(Matrix3<f64>, Matrix3<f64>), MarginalizeError> {
     let xi = poses
@@ -96,7 +109,7 @@ fn factor_jacobians(
     let xj = poses
         .get(usize::from(f.to))
         .ok_or(MarginalizeError::BadIndex)?;
-    let (ja, jb) = xi.between_jacobians(xj);
+    let (ja, jb) = xi.between_jacobians_trig(ci, si, xj);
     let (c, s) = (
         libm::cos(f.measurement.theta),
         libm::sin(f.measurement.theta),
@@ -182,6 +195,10 @@ pub fn marginalize(poses: &[Se2], factors: &[LocalFactor]) -> Result<Marginal, M
     }
     let z = Matrix3::zeros();
     let mut hmm = z;
+    let mut trig = [(1.0, 0.0); MAX_BLANKET + 1];
+    for (t, x) in trig.iter_mut().zip(poses) {
+        *t = (libm::cos(x.theta), libm::sin(x.theta));
+    }
     let mut out = Marginal {
         k,
         a: [z; MAX_BLANKET],
@@ -192,7 +209,12 @@ pub fn marginalize(poses: &[Se2], factors: &[LocalFactor]) -> Result<Marginal, M
         s_inv: z,
     };
     for f in factors {
-        let (ja, jb) = factor_jacobians(poses, f)?;
+        let first = usize::from(f.from);
+        let (ja, jb) = factor_jacobians_trig(
+            poses,
+            *trig.get(first).ok_or(MarginalizeError::BadIndex)?,
+            f,
+        )?;
         // Orient the factor as (m, blanket node).
         let (jm, jo, other) = match (f.from, f.to) {
             (0, o) if o > 0 => (ja, jb, usize::from(o)),
@@ -283,25 +305,13 @@ pub fn chow_liu_edges(
     if k > MAX_BLANKET || marginal.blanket_len() != k {
         return Err(MarginalizeError::BlanketTooLarge);
     }
-    // Relative covariances of every pair, computed once (k <= 9: at most 36 pairs).
     let mut trig = [(1.0, 0.0); MAX_BLANKET];
     for (t, x) in trig.iter_mut().zip(blanket) {
         *t = (libm::cos(x.theta), libm::sin(x.theta));
     }
-    let mut rel = [[Matrix3::zeros(); MAX_BLANKET]; MAX_BLANKET];
-    for i in 0..k {
-        for j in (i + 1)..k {
-            if let (Some(c), Some(row)) = (
-                relative_covariance(blanket, &trig, marginal, i, j),
-                rel.get_mut(i),
-            ) {
-                if let Some(slot) = row.get_mut(j) {
-                    *slot = c;
-                }
-            }
-        }
-    }
-    let pair = |i: usize, j: usize| rel.get(i).and_then(|r| r.get(j)).copied();
+    // Pair weights are computed on the fly; the k - 1 tree pairs are recomputed below rather
+    // than storing all k (k - 1) / 2 covariances.
+    let pair = |i: usize, j: usize| relative_covariance(blanket, &trig, marginal, i, j);
     let tree = maximum_spanning_tree(k, |i, j| pair(i, j).map(|c| information_heuristic(&c)))
         .ok_or(MarginalizeError::BlanketTooLarge)?;
     for p in tree {

@@ -97,9 +97,6 @@ pub struct PruneReport {
     pub tree_edges_merged: usize,
     /// Outlier (null-hypothesis) edges dropped.
     pub outliers_dropped: usize,
-    /// Largest difference between a tree edge's measurement and the current relative pose of
-    /// its nodes (translation norm, metres): how hard the eliminated edges were pulling.
-    pub max_tree_offset_m: f64,
     /// Statistics of the cell selection.
     pub cell_stats: CellStats,
 }
@@ -358,6 +355,9 @@ fn push_edge(graph: &mut PoseGraph<'_>, s: &mut PruneScratch<'_>, edge: PoseEdge
 
 /// The information an edge contributes at the current estimate, or `None` for an outlier.
 fn effective_information(edge: &PoseEdge, xi: &Se2, xj: &Se2, outlier_scale: f64) -> Option<Info3> {
+    if edge.robust == RobustKernel::None {
+        return Some(edge.information);
+    }
     let chi2 = edge.chi2_of(&edge.residual(xi, xj));
     let (w, _) = edge.robust.weigh(chi2);
     if matches!(edge.robust, RobustKernel::MaxMixture { .. }) && w < outlier_scale {
@@ -474,11 +474,6 @@ fn eliminate(
         ) else {
             continue;
         };
-        let current = pose_of(graph, a).between(&pose_of(graph, b));
-        let off = libm::hypot(current.x - t.measurement.x, current.y - t.measurement.y);
-        if off > report.max_tree_offset_m {
-            report.max_tree_offset_m = off;
-        }
         if merge_into_existing(a, b, &t.measurement, &t.information, graph, s) {
             report.tree_edges_merged += 1;
         } else if push_edge(

@@ -22,6 +22,22 @@ pub enum EvalCommand {
     Rpe(RpeArgs),
     /// Relative errors against GMapping reference poses (`*.gfs_reference_poses.txt`).
     Ref(RefArgs),
+    /// Average relative pose shift (ARPS) of a pruned pose graph against its original.
+    Arps(ArpsArgs),
+}
+
+/// Arguments of `cloi eval arps`.
+#[derive(Debug, Args)]
+pub struct ArpsArgs {
+    /// The full pose graph (g2o or TORO); it is optimized first unless `--as-is`.
+    #[arg(long)]
+    pub original: PathBuf,
+    /// The pruned graph (as `cloi prune --out` writes it: original vertex ids kept).
+    #[arg(long)]
+    pub pruned: PathBuf,
+    /// Take the original's vertex poses as they are (already optimized).
+    #[arg(long)]
+    pub as_is: bool,
 }
 
 /// Arguments of `cloi eval relations`.
@@ -105,6 +121,9 @@ pub struct RefArgs {
 /// Unreadable inputs or nothing to compare.
 pub fn run(cmd: &EvalCommand, out: &mut dyn Write) -> Result<()> {
     let value = match cmd {
+        EvalCommand::Arps(a) => {
+            serde_json::to_value(crate::prune::eval_arps(&a.original, &a.pruned, a.as_is)?)?
+        }
         EvalCommand::Relations(a) => {
             let traj = PlanarTrajectory::load_tum(&a.trajectory)?;
             let rels = load_relations(&a.relations)?;
