@@ -5,13 +5,11 @@
 //! keeps at most a couple of nodes per grid cell, so the pools only have to hold what one
 //! building needs. `cloi-budget` checks at compile time that each profile fits its budget.
 //!
-//! The resources hold placeholder pools until the mapper's layers land; their sizes already
-//! scale with the capacities, so the budget table is meaningful from the start.
+//! The resources hold the pose graph, its solver workspace and the submap cells today; the
+//! front-end's and GPE's storage joins them as the mapper is assembled (issue 7).
 
-use crate::geom::{Cov3, Se2};
 use crate::graph::GraphStorage;
 use crate::solver::SolverWorkspace;
-use crate::storage::Slot;
 
 /// The capacities and budget of one deployment class.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -69,33 +67,13 @@ pub const AIRPORT: ProfileSpec = ProfileSpec {
     max_edges: 393216,
     max_submaps: 1600,
     submap_cells: 100 * 100,
-    max_factor_blocks: 5 * 131072 / 2,
+    // Six factor blocks per node: M3500 needs 5.5 after minimum-degree ordering; denser
+    // graphs are pruned before they reach the airport's node count.
+    max_factor_blocks: 6 * 131072,
 };
 
 /// Every built-in profile.
 pub const PROFILES: [ProfileSpec; 3] = [HOME, OFFICE, AIRPORT];
-
-/// A node as the resources store it.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct NodeRecord {
-    /// Estimated pose.
-    pub pose: Se2,
-    /// Its covariance.
-    pub cov: Cov3,
-}
-
-/// An edge as the resources store it.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct EdgeRecord {
-    /// Index of the first node.
-    pub from: u32,
-    /// Index of the second node.
-    pub to: u32,
-    /// Measured relative pose.
-    pub measurement: Se2,
-    /// Information of the measurement.
-    pub information: Cov3,
-}
 
 /// All of the mapper's storage, sized by const generics. One value of this type per robot,
 /// typically in a `static`; the mapper borrows it once.
@@ -107,10 +85,6 @@ pub struct MapperResources<
     const CELLS: usize,
     const FACTOR: usize,
 > {
-    /// Node pool storage.
-    pub nodes: [Slot<NodeRecord>; NODES],
-    /// Edge pool storage.
-    pub edges: [Slot<EdgeRecord>; EDGES],
     /// Occupancy cells of every submap (log-odds in compact integers).
     pub grid_cells: [[i8; CELLS]; SUBMAPS],
     /// The pose graph that the back-end optimizes.
@@ -130,8 +104,6 @@ impl<
     /// Empty resources, usable as a `static` initialiser.
     pub const fn new() -> Self {
         MapperResources {
-            nodes: Slot::array::<NODES>(),
-            edges: Slot::array::<EDGES>(),
             grid_cells: [[0; CELLS]; SUBMAPS],
             pose_graph: GraphStorage::new(),
             solver: SolverWorkspace::new(),

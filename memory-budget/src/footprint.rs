@@ -4,11 +4,9 @@ use core::mem::size_of;
 
 use cloi_core::graph::{PoseEdge, PoseNode};
 use cloi_core::profile::{
-    AirportResources, EdgeRecord, HomeResources, NodeRecord, OfficeResources, ProfileSpec, AIRPORT,
-    HOME, OFFICE,
+    AirportResources, HomeResources, OfficeResources, ProfileSpec, AIRPORT, HOME, OFFICE,
 };
 use cloi_core::solver::SolverWorkspace;
-use cloi_core::storage::Slot;
 
 // The proof: the build fails if a profile's resources exceed its budget on the target being
 // compiled for (host and ARM alike, since pointer widths differ).
@@ -70,8 +68,6 @@ fn footprint_of(spec: ProfileSpec, total_bytes: usize, solver_bytes: usize) -> P
         spec,
         total_bytes,
         pools: vec![
-            row("nodes", spec.max_nodes, size_of::<Slot<NodeRecord>>()),
-            row("edges", spec.max_edges, size_of::<Slot<EdgeRecord>>()),
             row(
                 "grid cells",
                 spec.max_submaps * spec.submap_cells,
