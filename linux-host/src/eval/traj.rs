@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use nalgebra::{DMatrix, Matrix3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
-use crate::io::tum::{read_tum, StampedPose};
+use crate::io::tum::{read_kitti_rows, read_tum, StampedPose};
 
 /// A 3D pose as a rotation matrix and a translation, kept exactly as read: KITTI files
 /// store rotations with 9 digits, which are not quite orthonormal, and `evo` uses them as
@@ -81,21 +81,8 @@ pub struct Trajectory {
 /// Reads KITTI poses (12 numbers per line) without touching the matrices; times are the
 /// line numbers.
 fn read_kitti_raw(path: &Path) -> Result<Trajectory> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     let mut out = Trajectory::default();
-    for (i, line) in text.lines().enumerate() {
-        if line.trim().is_empty() {
-            continue;
-        }
-        let v: Vec<f64> = line
-            .split_ascii_whitespace()
-            .map(str::parse)
-            .collect::<Result<_, _>>()
-            .with_context(|| format!("{}:{}: not a number", path.display(), i + 1))?;
-        let [r00, r01, r02, tx, r10, r11, r12, ty, r20, r21, r22, tz] = v[..] else {
-            bail!("{}:{}: expected 12 numbers", path.display(), i + 1);
-        };
+    for [r00, r01, r02, tx, r10, r11, r12, ty, r20, r21, r22, tz] in read_kitti_rows(path)? {
         out.stamps.push(out.poses.len() as f64);
         out.poses.push(Pose3 {
             r: Matrix3::new(r00, r01, r02, r10, r11, r12, r20, r21, r22),

@@ -68,6 +68,32 @@ pub fn read_tum(path: &Path) -> Result<Vec<StampedPose>> {
     Ok(out)
 }
 
+/// Reads the rows of a KITTI trajectory file: the 12 numbers of each line's 3x4 matrix, row
+/// major, as written (no re-orthonormalization). Blank lines are skipped.
+///
+/// # Errors
+/// Unreadable file, or a line without 12 numbers (with file and line number).
+pub fn read_kitti_rows(path: &Path) -> Result<Vec<[f64; 12]>> {
+    let reader = open_maybe_compressed(path)?;
+    let mut out = Vec::new();
+    for (i, line) in reader.lines().enumerate() {
+        let line = line.with_context(|| format!("{}:{}", path.display(), i + 1))?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        let v: Vec<f64> = line
+            .split_ascii_whitespace()
+            .map(str::parse)
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("{}:{}: not a number", path.display(), i + 1))?;
+        let row: [f64; 12] = v[..]
+            .try_into()
+            .map_err(|_| anyhow::anyhow!("{}:{}: expected 12 numbers", path.display(), i + 1))?;
+        out.push(row);
+    }
+    Ok(out)
+}
+
 /// Reads a KITTI trajectory (3x4 matrices); times are the line numbers unless `times` is
 /// given (one time per line, e.g. KITTI's `times.txt`).
 ///
@@ -87,21 +113,8 @@ pub fn read_kitti(path: &Path, times: Option<&Path>) -> Result<Vec<StampedPose>>
         }
         None => None,
     };
-    let reader = open_maybe_compressed(path)?;
     let mut out = Vec::new();
-    for (i, line) in reader.lines().enumerate() {
-        let line = line.with_context(|| format!("{}:{}", path.display(), i + 1))?;
-        if line.trim().is_empty() {
-            continue;
-        }
-        let v: Vec<f64> = line
-            .split_ascii_whitespace()
-            .map(str::parse)
-            .collect::<Result<_, _>>()
-            .with_context(|| format!("{}:{}: not a number", path.display(), i + 1))?;
-        if v.len() != 12 {
-            bail!("{}:{}: expected 12 numbers", path.display(), i + 1);
-        }
+    for v in read_kitti_rows(path)? {
         let r = Matrix3::new(v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10]);
         let t = match &stamps {
             Some(s) => *s
