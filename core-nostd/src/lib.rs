@@ -15,6 +15,8 @@
 //!   camera images) and the scan checks.
 //! * [`frontend`]: odometry fusion, scan preprocessing, occupancy-grid submaps, ICP, the
 //!   correlative loop-closure search and the keyframe decision (paper section III-B).
+//! * [`mapper`]: the LiDAR mapper assembled from all of the above: front-end, frame nodes,
+//!   loop closure, GPE with the worst-case prediction, and the back-end in bounded steps.
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
@@ -36,6 +38,7 @@ pub mod error;
 pub mod frontend;
 pub mod geom;
 pub mod graph;
+pub mod mapper;
 pub mod profile;
 pub mod sensor;
 pub mod solver;

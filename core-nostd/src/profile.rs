@@ -5,10 +5,19 @@
 //! keeps at most a couple of nodes per grid cell, so the pools only have to hold what one
 //! building needs. `cloi-budget` checks at compile time that each profile fits its budget.
 //!
-//! The resources hold the pose graph, its solver workspace and the submap cells today; the
-//! front-end's and GPE's storage joins them as the mapper is assembled (issue 7).
+//! The resources hold everything the mapper works on: the pose graph and its solver workspace,
+//! the submap cells and their metadata, the loop-closure search's pyramid and reference points,
+//! the front-end's local point map, scan buffer and odometry history, and the mapper's small
+//! state. [`MapperResources::mapper`] lends them to a [`Mapper`].
 
-use crate::graph::GraphStorage;
+use crate::frontend::odometry::{OdometryConfig, OdometryFusion};
+use crate::frontend::scan::{ScanPoint, ScanPoints};
+use crate::frontend::{KeyframeConfig, PointMap};
+use crate::graph::{GraphStorage, PoseGraph};
+use crate::mapper::{
+    Mapper, MapperConfig, MapperError, MapperParts, MapperState, NodeMeta, SubmapMeta,
+    LOCAL_MAP_POINTS, LOOP_REFERENCE_POINTS, ODOMETRY_HISTORY, PYRAMID_LEVELS,
+};
 use crate::solver::SolverWorkspace;
 
 /// The capacities and budget of one deployment class.
@@ -91,6 +100,24 @@ pub struct MapperResources<
     pub pose_graph: GraphStorage<NODES, EDGES>,
     /// The pose-graph solver's workspace (ordering, factor, iteration state).
     pub solver: SolverWorkspace<NODES, EDGES, FACTOR>,
+    /// Per graph node: keyframe serial, stamp, front-end pose, submap.
+    pub node_meta: [NodeMeta; NODES],
+    /// Per submap: anchor and state.
+    pub submap_meta: [SubmapMeta; SUBMAPS],
+    /// Max-pooled levels of the submap being searched for a loop closure.
+    pub pyramid: [[u8; CELLS]; PYRAMID_LEVELS],
+    /// Occupied cells of the submap a loop closure is refined against.
+    pub loop_reference: [ScanPoint; LOOP_REFERENCE_POINTS],
+    /// The front-end's local point map.
+    pub local_map: PointMap<LOCAL_MAP_POINTS>,
+    /// The preprocessed scan.
+    pub scan: ScanPoints,
+    /// The part of the scan a loop-closure search uses.
+    pub loop_scan: ScanPoints,
+    /// Wheel odometry and gyro history.
+    pub odometry: OdometryFusion<ODOMETRY_HISTORY>,
+    /// Counters and the front-end's and back-end's small state.
+    pub state: MapperState,
 }
 
 impl<
@@ -107,7 +134,61 @@ impl<
             grid_cells: [[0; CELLS]; SUBMAPS],
             pose_graph: GraphStorage::new(),
             solver: SolverWorkspace::new(),
+            node_meta: [NodeMeta::EMPTY; NODES],
+            submap_meta: [SubmapMeta::EMPTY; SUBMAPS],
+            pyramid: [[0; CELLS]; PYRAMID_LEVELS],
+            loop_reference: [ScanPoint {
+                p: [0.0, 0.0],
+                n: [0.0, 0.0],
+            }; LOOP_REFERENCE_POINTS],
+            local_map: PointMap::new(0.05),
+            scan: ScanPoints::new(),
+            loop_scan: ScanPoints::new(),
+            odometry: OdometryFusion::new(OdometryConfig::DEFAULT),
+            state: MapperState::new(KeyframeConfig {
+                distance: 0.2,
+                angle: 0.35,
+            }),
         }
+    }
+
+    /// Starts a new, empty map over these resources with `config`.
+    ///
+    /// # Errors
+    /// [`MapperError`] when the configuration does not fit the resources (e.g. a submap grid
+    /// of another size than `CELLS`).
+    pub fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError> {
+        if config.grid.cells() != CELLS {
+            return Err(MapperError::Storage(
+                "submap grid size differs from the profile's",
+            ));
+        }
+        let mut graph = PoseGraph::new(&mut self.pose_graph.nodes, &mut self.pose_graph.edges);
+        graph.clear();
+        self.submap_meta.fill(SubmapMeta::EMPTY);
+        self.local_map = PointMap::new(config.local_voxel);
+        self.scan.clear();
+        self.odometry = OdometryFusion::new(config.odometry);
+        self.state = MapperState::new(config.keyframe);
+        let mut solver = self.solver.buffers();
+        solver.invalidate();
+        Mapper::new(
+            config,
+            MapperParts {
+                graph,
+                solver,
+                meta: &mut self.node_meta,
+                submaps: &mut self.submap_meta,
+                cells: self.grid_cells.as_flattened_mut(),
+                pyramid: self.pyramid.as_flattened_mut(),
+                local: &mut self.local_map,
+                scan: &mut self.scan,
+                reference: &mut self.loop_reference,
+                loop_scan: &mut self.loop_scan,
+                odometry: &mut self.odometry,
+                state: &mut self.state,
+            },
+        )
     }
 }
 

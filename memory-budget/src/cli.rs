@@ -39,7 +39,7 @@ pub fn run(args: &BudgetArgs, out: &mut dyn Write) -> Result<()> {
     )?;
     writeln!(
         out,
-        "{:<9} {:>9} {:<11} {:>10} {:>12} {:>12}",
+        "{:<9} {:>9} {:<22} {:>10} {:>12} {:>12}",
         "profile", "area m2", "pool", "count", "bytes", "MiB"
     )?;
     let mut over = Vec::new();
@@ -47,7 +47,7 @@ pub fn run(args: &BudgetArgs, out: &mut dyn Write) -> Result<()> {
         for r in &p.pools {
             writeln!(
                 out,
-                "{:<9} {:>9} {:<11} {:>10} {:>12} {:>12.3}",
+                "{:<9} {:>9} {:<22} {:>10} {:>12} {:>12.3}",
                 p.spec.name,
                 p.spec.area_m2,
                 r.name,
@@ -58,7 +58,7 @@ pub fn run(args: &BudgetArgs, out: &mut dyn Write) -> Result<()> {
         }
         writeln!(
             out,
-            "{:<9} {:>9} {:<11} {:>10} {:>12} {:>12.3}  budget {:.0} MiB: {}",
+            "{:<9} {:>9} {:<22} {:>10} {:>12} {:>12.3}  budget {:.0} MiB: {}",
             p.spec.name,
             p.spec.area_m2,
             "TOTAL",

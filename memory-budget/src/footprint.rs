@@ -2,7 +2,14 @@
 
 use core::mem::size_of;
 
+use cloi_core::frontend::odometry::OdometryFusion;
+use cloi_core::frontend::scan::{ScanPoint, ScanPoints};
+use cloi_core::frontend::PointMap;
 use cloi_core::graph::{PoseEdge, PoseNode};
+use cloi_core::mapper::{
+    MapperState, NodeMeta, SubmapMeta, LOCAL_MAP_POINTS, LOOP_REFERENCE_POINTS, ODOMETRY_HISTORY,
+    PYRAMID_LEVELS,
+};
 use cloi_core::profile::{
     AirportResources, HomeResources, OfficeResources, ProfileSpec, AIRPORT, HOME, OFFICE,
 };
@@ -76,6 +83,30 @@ fn footprint_of(spec: ProfileSpec, total_bytes: usize, solver_bytes: usize) -> P
             row("graph nodes", spec.max_nodes, size_of::<PoseNode>()),
             row("graph edges", spec.max_edges, size_of::<PoseEdge>()),
             row("solver", 1, solver_bytes),
+            row("node metadata", spec.max_nodes, size_of::<NodeMeta>()),
+            row("submap metadata", spec.max_submaps, size_of::<SubmapMeta>()),
+            row(
+                "loop-search pyramid",
+                PYRAMID_LEVELS * spec.submap_cells,
+                size_of::<u8>(),
+            ),
+            row(
+                "loop reference points",
+                LOOP_REFERENCE_POINTS,
+                size_of::<ScanPoint>(),
+            ),
+            row(
+                "local point map",
+                1,
+                size_of::<PointMap<LOCAL_MAP_POINTS>>(),
+            ),
+            row("scan buffers", 2, size_of::<ScanPoints>()),
+            row(
+                "odometry history",
+                1,
+                size_of::<OdometryFusion<ODOMETRY_HISTORY>>(),
+            ),
+            row("mapper state", 1, size_of::<MapperState>()),
         ],
     }
 }

@@ -56,17 +56,22 @@ pub struct MotionNoise {
 
 impl Default for MotionNoise {
     fn default() -> Self {
-        MotionNoise {
-            longitudinal_per_m: 1e-3,
-            lateral_per_m: 4e-4,
-            translation_per_rad: 1e-4,
-            heading_per_rad: 2.5e-3,
-            heading_per_m: 1e-3,
-            gyro_per_s: 1e-5,
-            gyro_per_rad: 1e-4,
-            min_variance: [1e-8, 1e-8, 1e-9],
-        }
+        MotionNoise::DEFAULT
     }
+}
+
+impl MotionNoise {
+    /// The default model, as a constant.
+    pub const DEFAULT: MotionNoise = MotionNoise {
+        longitudinal_per_m: 1e-3,
+        lateral_per_m: 4e-4,
+        translation_per_rad: 1e-4,
+        heading_per_rad: 2.5e-3,
+        heading_per_m: 1e-3,
+        gyro_per_s: 1e-5,
+        gyro_per_rad: 1e-4,
+        min_variance: [1e-8, 1e-8, 1e-9],
+    };
 }
 
 /// Fusion parameters.
@@ -84,12 +89,17 @@ pub struct OdometryConfig {
 
 impl Default for OdometryConfig {
     fn default() -> Self {
-        OdometryConfig {
-            noise: MotionNoise::default(),
-            gyro_timeout_ns: 250_000_000,
-            max_extrapolation_ns: 100_000_000,
-        }
+        OdometryConfig::DEFAULT
     }
+}
+
+impl OdometryConfig {
+    /// The default parameters, as a constant.
+    pub const DEFAULT: OdometryConfig = OdometryConfig {
+        noise: MotionNoise::DEFAULT,
+        gyro_timeout_ns: 250_000_000,
+        max_extrapolation_ns: 100_000_000,
+    };
 }
 
 /// Odometry errors.
@@ -179,14 +189,20 @@ const NS: f64 = 1e-9;
 
 impl<const N: usize> OdometryFusion<N> {
     /// An empty fusion.
-    pub fn new(config: OdometryConfig) -> Self {
+    pub const fn new(config: OdometryConfig) -> Self {
         OdometryFusion {
             config,
             history: Deque::new(),
             last_wheel: None,
             gyro: None,
             gyro_at_last_wheel: None,
-            stats: OdometryStats::default(),
+            stats: OdometryStats {
+                wheel: 0,
+                gyro: 0,
+                out_of_order: 0,
+                non_finite: 0,
+                gyro_steps: 0,
+            },
         }
     }
 

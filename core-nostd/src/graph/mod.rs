@@ -380,6 +380,24 @@ impl<'a> PoseGraph<'a> {
         sum
     }
 
+    /// Drops every node from index `count` on, and every edge that touches one (no effect when
+    /// `count` is not smaller than the node count).
+    pub fn truncate_nodes(&mut self, count: usize) {
+        if count >= self.node_count {
+            return;
+        }
+        self.node_count = count;
+        let mut kept = 0;
+        for k in 0..self.edge_count {
+            let e = self.edges[k];
+            if (e.from.0 as usize) < count && (e.to.0 as usize) < count {
+                self.edges[kept] = e;
+                kept += 1;
+            }
+        }
+        self.edge_count = kept;
+    }
+
     /// Drops every edge from index `count` on (no effect when `count` is not smaller than
     /// the edge count).
     pub fn truncate_edges(&mut self, count: usize) {

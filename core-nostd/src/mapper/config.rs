@@ -1,0 +1,225 @@
+//! Parameters of the mapper, with defaults for the benchmark logs (a 180-degree scanner on a
+//! wheeled base) and 10 m submaps.
+
+use crate::frontend::odometry::OdometryConfig;
+use crate::frontend::{GridParams, IcpConfig, KeyframeConfig, PreprocessConfig};
+use crate::geom::Cov3;
+use crate::mapper::gpe::GpeConfig;
+use nalgebra::Matrix3;
+
+/// Uncertainty of the front-end's motion (LiDAR odometry), as a function of the path length
+/// `d` and the absolute rotation `phi` travelled: variances `var_xy_per_m * d +
+/// var_xy_per_rad * phi` for each position axis and `var_theta_per_m * d +
+/// var_theta_per_rad * phi` for the heading, plus the floors. The same model gives the
+/// information of odometry edges, the covariances of the GPE terms and the loop-closure
+/// search window.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct FrontendNoise {
+    /// Position variance per metre, m^2/m.
+    pub var_xy_per_m: f64,
+    /// Position variance per radian, m^2/rad.
+    pub var_xy_per_rad: f64,
+    /// Heading variance per metre, rad^2/m.
+    pub var_theta_per_m: f64,
+    /// Heading variance per radian, rad^2/rad.
+    pub var_theta_per_rad: f64,
+    /// Floor of the position variance, m^2.
+    pub min_var_xy: f64,
+    /// Floor of the heading variance, rad^2.
+    pub min_var_theta: f64,
+}
+
+impl Default for FrontendNoise {
+    fn default() -> Self {
+        FrontendNoise {
+            var_xy_per_m: 4e-4,
+            var_xy_per_rad: 1e-4,
+            var_theta_per_m: 1e-4,
+            var_theta_per_rad: 4e-4,
+            min_var_xy: 1e-6,
+            min_var_theta: 1e-7,
+        }
+    }
+}
+
+impl FrontendNoise {
+    /// Covariance of a motion of path length `distance` and rotation `rotation` (both taken
+    /// as absolute values).
+    pub fn covariance(&self, distance: f64, rotation: f64) -> Cov3 {
+        let (d, r) = (libm::fabs(distance), libm::fabs(rotation));
+        let xy = self.var_xy_per_m * d + self.var_xy_per_rad * r + self.min_var_xy;
+        let th = self.var_theta_per_m * d + self.var_theta_per_rad * r + self.min_var_theta;
+        Matrix3::new(xy, 0.0, 0.0, 0.0, xy, 0.0, 0.0, 0.0, th)
+    }
+}
+
+/// Loop-closure parameters.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LoopConfig {
+    /// Search on every `every`-th keyframe (1: every keyframe).
+    pub every: u32,
+    /// A submap whose anchor is fewer than this many keyframes older than the keyframe is not
+    /// searched (it is linked by odometry already).
+    pub min_keyframe_gap: u32,
+    /// Search window half-width: `sigmas` standard deviations of the position uncertainty
+    /// accumulated since the last loop closure, clamped to `[window_min, window_max]` metres.
+    pub sigmas: f64,
+    /// Smallest translation window, metres.
+    pub window_min: f64,
+    /// Largest translation window, metres.
+    pub window_max: f64,
+    /// Smallest rotation window, radians.
+    pub angle_min: f64,
+    /// Largest rotation window, radians.
+    pub angle_max: f64,
+    /// Smallest correlative score accepted.
+    pub min_score: f32,
+    /// Smallest share of scan points with an ICP correspondence after refinement.
+    pub min_fitness: f32,
+    /// Largest RMS residual after refinement, metres.
+    pub max_rms: f64,
+    /// Two matches against one submap confirm each other when the front-end motion between
+    /// their keyframes explains their difference within this, metres (plus 2 % of the
+    /// distance)...
+    pub agree_xy: f64,
+    /// ... and this, radians.
+    pub agree_theta: f64,
+    /// Smallest over largest eigenvalue of the refinement's Hessian below which the match is
+    /// degenerate and rejected (stricter than the front-end's).
+    pub degeneracy_ratio: f64,
+    /// Most submaps searched per keyframe (nearest first).
+    pub max_candidates: u8,
+    /// Pyramid levels of the branch-and-bound search.
+    pub pyramid_levels: u8,
+    /// Floors of the loop edge's standard deviations `[metres, radians]` (the ICP information
+    /// is overconfident).
+    pub min_sigma: [f64; 2],
+    /// Weight of the max-mixture null hypothesis.
+    pub null_weight: f32,
+    /// Information scale of the null hypothesis.
+    pub null_scale: f32,
+}
+
+impl Default for LoopConfig {
+    fn default() -> Self {
+        LoopConfig {
+            every: 2,
+            min_keyframe_gap: 30,
+            sigmas: 3.0,
+            window_min: 0.5,
+            window_max: 4.0,
+            angle_min: 0.2,
+            angle_max: 0.6,
+            min_score: 0.55,
+            min_fitness: 0.7,
+            max_rms: 0.08,
+            agree_xy: 0.05,
+            agree_theta: 0.02,
+            degeneracy_ratio: 0.01,
+            max_candidates: 3,
+            pyramid_levels: 5,
+            min_sigma: [0.03, 0.01],
+            null_weight: 1e-3,
+            null_scale: 1e-6,
+        }
+    }
+}
+
+/// Back-end parameters.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct BackendConfig {
+    /// Optimize after this many new keyframes even without a new loop closure.
+    pub every_keyframes: u32,
+    /// Most Gauss-Newton iterations of one optimization (spread over back-end steps).
+    pub max_iterations: u32,
+    /// Chi2 threshold of the odometry-chain gate that warm-starts max-mixture loops (see
+    /// `solver::gate`); 0 disables it.
+    pub gate_chi2: f64,
+}
+
+impl Default for BackendConfig {
+    fn default() -> Self {
+        BackendConfig {
+            every_keyframes: 50,
+            max_iterations: 20,
+            gate_chi2: 16.27,
+        }
+    }
+}
+
+/// Everything the mapper can be tuned by.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MapperConfig {
+    /// Scan preprocessing (the mounting is taken from each scan).
+    pub preprocess: PreprocessConfig,
+    /// Ranges beyond this are dropped, metres (also bounded by the scanner's own maximum).
+    pub max_range: f32,
+    /// Wheel odometry and gyro fusion.
+    pub odometry: OdometryConfig,
+    /// Scan-to-map ICP of the front-end.
+    pub icp: IcpConfig,
+    /// A front-end match below this fitness falls back to the odometry seed.
+    pub min_fitness: f32,
+    /// Keyframe thresholds.
+    pub keyframe: KeyframeConfig,
+    /// Keyframe points within this radius of the robot enter the local point map, metres.
+    pub local_radius: f32,
+    /// The local point map restarts when the robot is this far from its start, metres.
+    pub local_reset: f64,
+    /// Voxel of the local point map, metres.
+    pub local_voxel: f32,
+    /// Occupancy grid of a submap.
+    pub grid: GridParams,
+    /// A new submap starts when the robot is this far from the active one's anchor, metres.
+    pub submap_length: f64,
+    /// Front-end motion uncertainty.
+    pub noise: FrontendNoise,
+    /// Loop closure.
+    pub loops: LoopConfig,
+    /// Real-time pose estimation.
+    pub gpe: GpeConfig,
+    /// Back-end.
+    pub backend: BackendConfig,
+}
+
+impl Default for MapperConfig {
+    fn default() -> Self {
+        MapperConfig {
+            preprocess: PreprocessConfig {
+                voxel_size: 0.05,
+                ..PreprocessConfig::default()
+            },
+            max_range: 40.0,
+            odometry: OdometryConfig::default(),
+            icp: IcpConfig {
+                allow_degenerate: true,
+                ..IcpConfig::default()
+            },
+            min_fitness: 0.5,
+            keyframe: KeyframeConfig::default(),
+            local_radius: 8.0,
+            local_reset: 3.0,
+            local_voxel: 0.05,
+            grid: GridParams::LARGE,
+            submap_length: 3.0,
+            noise: FrontendNoise::default(),
+            loops: LoopConfig::default(),
+            gpe: GpeConfig::default(),
+            backend: BackendConfig::default(),
+        }
+    }
+}
+
+impl MapperConfig {
+    /// Defaults with 4.1 m submaps for small homes (the `home` profile).
+    pub fn home() -> Self {
+        MapperConfig {
+            grid: GridParams::HOME,
+            submap_length: 1.5,
+            ..MapperConfig::default()
+        }
+    }
+}

@@ -1,0 +1,259 @@
+//! Loop closure of a new keyframe against the finished submaps.
+//!
+//! Candidates are the finished submaps whose area contains the keyframe's estimated position,
+//! widened by the search window, and whose anchor is old enough not to be a neighbour along the
+//! odometry chain. The window is `sigmas` standard deviations of the front-end uncertainty
+//! accumulated since the last loop closure (a Mahalanobis gate in the metric of the motion
+//! model), clamped to a range. For each candidate, nearest first, a branch-and-bound
+//! correlative search over the window finds the best pose of the scan in the submap; ICP
+//! against the submap's occupied cells refines it without the degenerate-direction fallback
+//! (a corridor match that does not fix every direction is rejected); the fitness, the RMS
+//! residual and the agreement of the two matches decide. An accepted match becomes a loop edge
+//! from the submap's anchor to the keyframe with the ICP information (floored) and a
+//! max-mixture null hypothesis.
+
+use nalgebra::Matrix3;
+
+use super::{LoopCandidate, Mapper};
+use crate::frontend::csm::{search, CsmConfig, Pyramid};
+use crate::frontend::{align, IcpConfig, KdTree, Submap};
+use crate::geom::{spd_inverse, Se2};
+use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
+use crate::storage::NodeId;
+
+/// Most candidates considered per keyframe before the `max_candidates` cut.
+const MAX_CANDIDATES: usize = 8;
+/// Occupied cells for the refinement: log-odds units at least this (probability ~0.73).
+const OCCUPIED: i8 = 10;
+
+impl Mapper<'_> {
+    /// Searches loop closures for keyframe `serial`; returns how many were added.
+    pub(crate) fn close_loops(&mut self, serial: u32) -> u8 {
+        let Some(k) = self.node_of(serial) else {
+            return 0;
+        };
+        let Some(gk) = self.graph.nodes().get(k).map(|n| n.pose) else {
+            return 0;
+        };
+        let lc = self.cfg.loops;
+        let cov = self.cfg.noise.covariance(
+            self.st.path - self.st.path_at_loop,
+            self.st.rotation - self.st.rotation_at_loop,
+        );
+        let window = (lc.sigmas * libm::sqrt(cov[(0, 0)].max(cov[(1, 1)])))
+            .clamp(lc.window_min, lc.window_max);
+        let angle = (lc.sigmas * libm::sqrt(cov[(2, 2)])).clamp(lc.angle_min, lc.angle_max);
+        let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
+
+        let mut candidates = heapless::Vec::<(f64, usize, u32), MAX_CANDIDATES>::new();
+        for (slot, m) in self.submaps.iter().enumerate() {
+            if !m.in_use || m.active || m.anchor_serial + lc.min_keyframe_gap > serial {
+                continue;
+            }
+            let Some(ga) = self.keyframe_pose(m.anchor_serial) else {
+                continue;
+            };
+            let local = ga.between(&gk);
+            if libm::fabs(local.x) > half + window || libm::fabs(local.y) > half + window {
+                continue;
+            }
+            let d = libm::hypot(local.x, local.y);
+            if candidates.is_full() {
+                // Replace the farthest if this one is nearer.
+                let Some((far, _)) = candidates
+                    .iter()
+                    .enumerate()
+                    .max_by(|a, b| a.1 .0.total_cmp(&b.1 .0))
+                else {
+                    continue;
+                };
+                if candidates.get(far).is_some_and(|c| c.0 > d) {
+                    if let Some(c) = candidates.get_mut(far) {
+                        *c = (d, slot, m.anchor_serial);
+                    }
+                }
+            } else {
+                let _ = candidates.push((d, slot, m.anchor_serial));
+            }
+        }
+        candidates.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+
+        let mut added = 0u8;
+        for &(_, slot, anchor_serial) in candidates.iter().take(lc.max_candidates as usize) {
+            let (Some(a), Some(ga)) = (
+                self.node_of(anchor_serial),
+                self.keyframe_pose(anchor_serial),
+            ) else {
+                continue;
+            };
+            self.st.stats.loop_searches += 1;
+            let seed = ga.between(&gk);
+            let Some((z, info)) = self.match_in_submap(slot, &seed, window, angle) else {
+                continue;
+            };
+            // A match is only believed when a second keyframe matched to the same submap
+            // agrees with it through the front-end motion between the two.
+            let candidate = LoopCandidate {
+                slot: slot as u16,
+                serial,
+                z,
+                info,
+            };
+            let confirmed = match self
+                .st
+                .unconfirmed
+                .iter()
+                .position(|c| c.slot == slot as u16)
+            {
+                Some(i) => {
+                    let c = self.st.unconfirmed[i];
+                    if self.loops_agree(&c, &candidate) {
+                        let _ = self.st.unconfirmed.swap_remove(i);
+                        Some(c)
+                    } else {
+                        self.st.unconfirmed[i] = candidate;
+                        None
+                    }
+                }
+                None => {
+                    if self.st.unconfirmed.is_full() {
+                        let _ = self.st.unconfirmed.remove(0);
+                    }
+                    let _ = self.st.unconfirmed.push(candidate);
+                    None
+                }
+            };
+            let Some(first) = confirmed else {
+                self.st.stats.loops_unconfirmed += 1;
+                continue;
+            };
+            for c in [first, candidate] {
+                let Some(to) = self.node_of(c.serial) else {
+                    continue;
+                };
+                let mut edge = PoseEdge::new(
+                    NodeId(a as u32),
+                    NodeId(to as u32),
+                    c.z,
+                    c.info,
+                    EdgeKind::Loop,
+                );
+                edge.robust = RobustKernel::max_mixture_with_null(lc.null_weight, lc.null_scale);
+                if self.graph.add_edge(edge).is_ok() {
+                    added += 1;
+                    self.st.stats.loop_closures += 1;
+                    self.st.pending_loop = true;
+                    self.st.path_at_loop = self.st.path;
+                    self.st.rotation_at_loop = self.st.rotation;
+                }
+            }
+        }
+        added
+    }
+
+    /// Whether two matches against one submap agree with the front-end motion between their
+    /// keyframes.
+    fn loops_agree(&self, a: &LoopCandidate, b: &LoopCandidate) -> bool {
+        let (Some(ia), Some(ib)) = (self.node_of(a.serial), self.node_of(b.serial)) else {
+            return false;
+        };
+        let (Some(ma), Some(mb)) = (self.meta.get(ia), self.meta.get(ib)) else {
+            return false;
+        };
+        let odo = ma.frontend.between(&mb.frontend);
+        let e = odo.between(&a.z.between(&b.z));
+        let d = libm::hypot(odo.x, odo.y);
+        let lc = &self.cfg.loops;
+        libm::hypot(e.x, e.y) <= lc.agree_xy + 0.02 * d && libm::fabs(e.theta) <= lc.agree_theta
+    }
+
+    /// Matches the current scan in submap `slot` around `seed` (pose in the submap's frame);
+    /// the measured pose and its information when accepted.
+    fn match_in_submap(
+        &mut self,
+        slot: usize,
+        seed: &Se2,
+        window: f64,
+        angle: f64,
+    ) -> Option<(Se2, Matrix3<f64>)> {
+        let lc = self.cfg.loops;
+        let per = self.cells_per_submap;
+        let cells = self.cells.get(slot * per..(slot + 1) * per)?;
+        let submap = Submap::from_cells(Se2::IDENTITY, self.cfg.grid, cells).ok()?;
+        let levels = lc.pyramid_levels as usize;
+        let pyramid = Pyramid::build(&submap, levels, self.pyramid).ok()?;
+        let csm = CsmConfig {
+            window_xy: window,
+            window_theta: angle,
+            angular_step: 0.0,
+            min_score: lc.min_score,
+        };
+        // Only the points that fall inside the submap at the seed take part: the others would
+        // dilute the score and the fitness of a good match.
+        let half = self.cfg.grid.side as f32 * self.cfg.grid.resolution * 0.5;
+        let (c, s) = (libm::cos(seed.theta) as f32, libm::sin(seed.theta) as f32);
+        let (tx, ty) = (seed.x as f32, seed.y as f32);
+        self.loop_scan.clear();
+        for q in self.scan.iter() {
+            let x = tx + c * q.p[0] - s * q.p[1];
+            let y = ty + s * q.p[0] + c * q.p[1];
+            if libm::fabsf(x) < half && libm::fabsf(y) < half {
+                let _ = self.loop_scan.push(*q);
+            }
+        }
+        if 3 * self.loop_scan.len() < self.scan.len()
+            || (self.loop_scan.len() as u32) < self.cfg.icp.min_points
+        {
+            self.st.stats.loops_no_match += 1;
+            return None;
+        }
+        let Ok(found) = search(self.loop_scan, &submap, &pyramid, seed, &csm) else {
+            self.st.stats.loops_no_match += 1;
+            return None;
+        };
+        let n = submap.occupied_points(OCCUPIED, 2, self.reference);
+        let tree = KdTree::build(self.reference.get_mut(..n)?);
+        let icp = IcpConfig {
+            allow_degenerate: false,
+            degeneracy_ratio: lc.degeneracy_ratio,
+            max_correspondence: 0.3,
+            ..self.cfg.icp
+        };
+        let refined = match align(self.loop_scan, &tree, &found.pose, &icp) {
+            Ok(r) => r,
+            Err(e) => {
+                debug!(
+                    "loop refinement failed (score {}): {} ({} query, {} reference)",
+                    found.score,
+                    e,
+                    self.loop_scan.len(),
+                    n
+                );
+                self.st.stats.loops_rejected += 1;
+                return None;
+            }
+        };
+        let moved = found.pose.between(&refined.pose);
+        let res = self.cfg.grid.resolution as f64;
+        if refined.fitness < lc.min_fitness
+            || refined.rms > lc.max_rms
+            || libm::hypot(moved.x, moved.y) > 4.0 * res
+        {
+            debug!(
+                "loop rejected: score {} fitness {} rms {} moved {}",
+                found.score,
+                refined.fitness,
+                refined.rms,
+                libm::hypot(moved.x, moved.y)
+            );
+            self.st.stats.loops_rejected += 1;
+            return None;
+        }
+        let [sxy, sth] = lc.min_sigma;
+        let mut cov = spd_inverse(&refined.information)?;
+        cov[(0, 0)] += sxy * sxy;
+        cov[(1, 1)] += sxy * sxy;
+        cov[(2, 2)] += sth * sth;
+        Some((refined.pose, spd_inverse(&cov)?))
+    }
+}

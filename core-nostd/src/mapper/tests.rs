@@ -1,0 +1,388 @@
+//! End-to-end tests of the mapper on a synthetic world: a room with furniture, scans by ray
+//! casting, wheel odometry with a heading bias, two laps.
+
+extern crate std;
+
+use std::boxed::Box;
+use std::vec::Vec;
+
+use super::*;
+use crate::frontend::GridParams;
+use crate::profile::MapperResources;
+
+/// Runs `f` on a thread with a stack large enough for resources built by value in debug builds.
+fn with_stack(f: impl FnOnce() + Send + 'static) {
+    std::thread::Builder::new()
+        .stack_size(256 << 20)
+        .spawn(f)
+        .expect("thread")
+        .join()
+        .expect("test body");
+}
+
+type TestResources = MapperResources<512, 1536, 12, { 82 * 82 }, 8192>;
+
+/// Wall segments of an 8 m x 6 m room with a few boxes.
+const WALLS: [[f64; 4]; 16] = [
+    [0.0, 0.0, 8.0, 0.0],
+    [8.0, 0.0, 8.0, 6.0],
+    [8.0, 6.0, 0.0, 6.0],
+    [0.0, 6.0, 0.0, 0.0],
+    [3.0, 2.5, 5.0, 2.5],
+    [5.0, 2.5, 5.0, 3.5],
+    [5.0, 3.5, 3.0, 3.5],
+    [3.0, 3.5, 3.0, 2.5],
+    [0.0, 4.0, 0.8, 4.0],
+    [0.8, 4.0, 0.8, 4.3],
+    [7.0, 0.0, 7.0, 0.6],
+    [7.0, 0.6, 7.4, 0.6],
+    [1.5, 6.0, 1.5, 5.4],
+    [1.5, 5.4, 2.0, 5.4],
+    [6.2, 6.0, 6.2, 5.0],
+    [6.2, 5.0, 6.6, 5.0],
+];
+
+fn cast(pose: &Se2, angle: f64) -> f32 {
+    let (dx, dy) = (libm::cos(pose.theta + angle), libm::sin(pose.theta + angle));
+    let mut best = f64::INFINITY;
+    for w in WALLS {
+        let (ex, ey) = (w[2] - w[0], w[3] - w[1]);
+        let den = dx * ey - dy * ex;
+        if libm::fabs(den) < 1e-12 {
+            continue;
+        }
+        let (qx, qy) = (w[0] - pose.x, w[1] - pose.y);
+        let t = (qx * ey - qy * ex) / den;
+        let u = (qx * dy - qy * dx) / den;
+        if t > 0.0 && (0.0..=1.0).contains(&u) {
+            best = best.min(t);
+        }
+    }
+    if best < 20.0 {
+        best as f32
+    } else {
+        f32::NAN
+    }
+}
+
+const BEAMS: usize = 360;
+
+fn geometry() -> BeamGeometry {
+    BeamGeometry {
+        angle_min: -core::f32::consts::PI,
+        angle_increment: 2.0 * core::f32::consts::PI / BEAMS as f32,
+        range_min: 0.05,
+        range_max: 20.0,
+    }
+}
+
+fn scan_at(pose: &Se2) -> Vec<f32> {
+    let g = geometry();
+    (0..BEAMS)
+        .map(|i| cast(pose, (g.angle_min + g.angle_increment * i as f32) as f64))
+        .collect()
+}
+
+/// Ground-truth poses at 10 Hz: two laps around the central box.
+fn path() -> Vec<Se2> {
+    let corners = [(1.5, 1.2), (6.5, 1.2), (6.5, 4.6), (1.5, 4.6)];
+    let mut out = Vec::new();
+    for _lap in 0..2 {
+        for k in 0..4 {
+            let (ax, ay) = corners[k];
+            let (bx, by) = corners[(k + 1) % 4];
+            let heading = libm::atan2(by - ay, bx - ax);
+            let len = libm::hypot(bx - ax, by - ay);
+            let steps = (len / 0.05) as usize;
+            for s in 0..steps {
+                let f = s as f64 / steps as f64;
+                out.push(Se2::new(ax + f * (bx - ax), ay + f * (by - ay), heading));
+            }
+            // Turn on the spot at the corner.
+            let next = corners[(k + 2) % 4];
+            let h2 = libm::atan2(next.1 - by, next.0 - bx);
+            for s in 1..=10 {
+                let f = s as f64 / 10.0;
+                out.push(Se2::new(
+                    bx,
+                    by,
+                    heading + f * crate::geom::wrap_angle(h2 - heading),
+                ));
+            }
+        }
+    }
+    out
+}
+
+struct Run {
+    outputs: Vec<FrameOutput>,
+    stats: MapperStats,
+    final_poses: Vec<Se2>,
+    truth: Vec<Se2>,
+}
+
+fn run(config: MapperConfig) -> Run {
+    let truth = path();
+    let mut res: Box<TestResources> = Box::default();
+    let mut mapper = res.mapper(config).expect("resources fit");
+    // Odometry: the true increments with a heading bias of 2 degrees per metre.
+    let mut odom = Se2::IDENTITY;
+    let mut outputs = Vec::new();
+    let mut serial_of = Vec::new();
+    for (i, p) in truth.iter().enumerate() {
+        if i > 0 {
+            let inc = truth[i - 1].between(p);
+            let d = libm::hypot(inc.x, inc.y);
+            odom = odom.compose(&Se2::new(inc.x, inc.y, inc.theta + d * 0.035));
+        }
+        let t = 1_000_000_000 + i as i64 * 100_000_000;
+        mapper.push_odometry(t, odom).expect("odometry in order");
+        let ranges = scan_at(p);
+        let out = mapper
+            .push_scan(
+                &ScanInput {
+                    stamp: t,
+                    ranges: &ranges,
+                    geometry: geometry(),
+                    mounting: Se2::IDENTITY,
+                },
+                false,
+            )
+            .expect("scan accepted");
+        let f = mapper
+            .node_of(out.reference_serial)
+            .and_then(|n| mapper.nodes().get(n))
+            .map(|m| m.frontend)
+            .expect("reference node");
+        serial_of.push((out.reference_serial, f.between(&out.frontend)));
+        outputs.push(out);
+        mapper.step_backend(5);
+    }
+    while mapper.step_backend(10) != BackendStep::Idle {}
+    let final_poses = serial_of
+        .iter()
+        .map(|(s, rel)| mapper.keyframe_pose(*s).expect("kept").compose(rel))
+        .collect();
+    Run {
+        outputs,
+        stats: mapper.stats(),
+        final_poses,
+        truth,
+    }
+}
+
+fn config() -> MapperConfig {
+    MapperConfig {
+        loops: LoopConfig {
+            min_keyframe_gap: 20,
+            ..LoopConfig::default()
+        },
+        ..MapperConfig::home()
+    }
+}
+
+/// Largest error of relative poses over `span` frames.
+fn relative_error(est: &[Se2], truth: &[Se2], span: usize) -> f64 {
+    (span..est.len())
+        .map(|i| {
+            let e = truth[i - span]
+                .between(&truth[i])
+                .between(&est[i - span].between(&est[i]));
+            libm::hypot(e.x, e.y)
+        })
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn two_laps_close_loops_and_stay_consistent() {
+    with_stack(|| {
+        let r = run(config());
+        let s = r.stats;
+        assert_eq!(s.scans as usize, r.truth.len());
+        assert!(s.keyframes > 100, "{s:?}");
+        assert!(s.submaps >= 3, "{s:?}");
+        assert!(s.loop_closures >= 2, "{s:?}");
+        assert!(s.optimizations >= 1, "{s:?}");
+        assert_eq!(s.icp_failures, 0, "{s:?}");
+        // Global consistency: the start and the same place one lap later agree (the map frame
+        // is the first pose's).
+        let lap = r.truth.len() / 2;
+        let e0 = r.truth[0].between(&r.truth[lap]);
+        let e = r.final_poses[0].between(&r.final_poses[lap]);
+        let d = e0.between(&e);
+        assert!(libm::hypot(d.x, d.y) < 0.05, "lap closure error {d:?}");
+        // Local consistency over 2 s windows, of the optimized and of the real-time trajectory.
+        let rt: Vec<Se2> = r.outputs.iter().map(|o| o.pose).collect();
+        assert!(relative_error(&r.final_poses, &r.truth, 20) < 0.05);
+        assert!(relative_error(&rt, &r.truth, 20) < 0.08);
+        // The real-time pose never jumps: each step is the front-end's step within 2 cm.
+        for w in r.outputs.windows(2) {
+            let g = w[0].pose.between(&w[1].pose);
+            let f = w[0].frontend.between(&w[1].frontend);
+            assert!(libm::hypot(g.x - f.x, g.y - f.y) < 0.02);
+        }
+    });
+}
+
+#[test]
+fn runs_are_bit_identical() {
+    with_stack(|| {
+        let a = run(config());
+        let b = run(config());
+        assert_eq!(a.outputs, b.outputs);
+        assert_eq!(a.final_poses, b.final_poses);
+    });
+}
+
+#[test]
+fn bad_scans_are_rejected_and_counted() {
+    with_stack(|| {
+        let mut res: Box<TestResources> = Box::default();
+        let mut mapper = res.mapper(MapperConfig::home()).expect("resources fit");
+        let pose = Se2::new(2.0, 2.0, 0.3);
+        mapper
+            .push_odometry(1_000, Se2::IDENTITY)
+            .expect("odometry");
+        let good = scan_at(&pose);
+        let scan = |stamp, ranges| ScanInput {
+            stamp,
+            ranges,
+            geometry: geometry(),
+            mounting: Se2::IDENTITY,
+        };
+        assert!(mapper.push_scan(&scan(1_000, &good), false).is_ok());
+        // Going back in time, or repeating the stamp.
+        assert_eq!(
+            mapper.push_scan(&scan(500, &good), false),
+            Err(MapperError::OutOfOrder)
+        );
+        assert_eq!(
+            mapper.push_scan(&scan(1_000, &good), false),
+            Err(MapperError::OutOfOrder)
+        );
+        // All NaN, empty, too few points.
+        let nan = std::vec![f32::NAN; BEAMS];
+        assert_eq!(
+            mapper.push_scan(&scan(2_000, &nan), false),
+            Err(MapperError::EmptyScan)
+        );
+        assert_eq!(
+            mapper.push_scan(&scan(3_000, &[]), false),
+            Err(MapperError::EmptyScan)
+        );
+        // A scan with a few NaN and infinite beams is used; the beams are counted.
+        let mut partly = good.clone();
+        partly[3] = f32::NAN;
+        partly[4] = f32::INFINITY;
+        assert!(mapper.push_scan(&scan(4_000, &partly), false).is_ok());
+        // An invalid geometry.
+        let bad_geometry = ScanInput {
+            geometry: BeamGeometry {
+                angle_increment: f32::NAN,
+                ..geometry()
+            },
+            ..scan(5_000, &good)
+        };
+        assert_eq!(
+            mapper.push_scan(&bad_geometry, false),
+            Err(MapperError::EmptyScan)
+        );
+        // Non-finite or repeated odometry.
+        assert_eq!(
+            mapper.push_odometry(6_000, Se2::new(f64::NAN, 0.0, 0.0)),
+            Err(MapperError::BadSample)
+        );
+        assert_eq!(
+            mapper.push_odometry(1_000, Se2::IDENTITY),
+            Err(MapperError::BadSample)
+        );
+        assert_eq!(
+            mapper.push_gyro(7_000, f64::INFINITY),
+            Err(MapperError::BadSample)
+        );
+        let s = mapper.stats();
+        assert_eq!(s.scans, 2);
+        assert_eq!(s.scans_out_of_order, 2);
+        assert_eq!(s.scans_empty, 3);
+        assert!(s.beams_invalid >= BEAMS as u32 + 2);
+        assert_eq!(s.odometry_rejected, 3);
+    });
+}
+
+#[test]
+fn worst_case_prediction_when_the_deadline_passes() {
+    with_stack(|| {
+        let mut res: Box<TestResources> = Box::default();
+        let mut mapper = res.mapper(MapperConfig::home()).expect("resources fit");
+        let truth = path();
+        let mut last = None;
+        for (i, p) in truth.iter().take(40).enumerate() {
+            let t = 1_000_000_000 + i as i64 * 100_000_000;
+            mapper.push_odometry(t, *p).expect("odometry");
+            let ranges = scan_at(p);
+            let out = mapper
+                .push_scan(
+                    &ScanInput {
+                        stamp: t,
+                        ranges: &ranges,
+                        geometry: geometry(),
+                        mounting: Se2::IDENTITY,
+                    },
+                    i % 3 == 2,
+                )
+                .expect("scan");
+            if let Some(prev) = last {
+                let prev: FrameOutput = prev;
+                if i % 3 == 2 {
+                    // Eq. (7): previous corrected pose composed with the odometry increment.
+                    assert!(out.predicted);
+                    let expect = prev.pose.compose(&prev.frontend.between(&out.frontend));
+                    assert_eq!(out.pose, expect);
+                }
+            }
+            last = Some(out);
+        }
+        assert_eq!(mapper.stats().gpe_predicted, 13);
+    });
+}
+
+#[test]
+fn full_pools_drop_keyframes_without_failing() {
+    with_stack(|| {
+        type Tiny = MapperResources<8, 24, 2, { 82 * 82 }, 64>;
+        let mut res: Box<Tiny> = Box::default();
+        let cfg = MapperConfig {
+            grid: GridParams::HOME,
+            ..MapperConfig::home()
+        };
+        let mut mapper = res.mapper(cfg).expect("resources fit");
+        for (i, p) in path().iter().take(200).enumerate() {
+            let t = 1_000_000_000 + i as i64 * 100_000_000;
+            mapper.push_odometry(t, *p).expect("odometry");
+            let ranges = scan_at(p);
+            let scan = ScanInput {
+                stamp: t,
+                ranges: &ranges,
+                geometry: geometry(),
+                mounting: Se2::IDENTITY,
+            };
+            mapper.push_scan(&scan, false).expect("scan");
+            mapper.step_backend(3);
+        }
+        let s = mapper.stats();
+        assert_eq!(s.keyframes, 8);
+        assert!(s.keyframes_dropped > 0);
+        assert_eq!(mapper.graph().node_count(), 8);
+    });
+}
+
+#[test]
+fn resources_of_another_grid_are_refused() {
+    with_stack(|| {
+        let mut res: Box<TestResources> = Box::default();
+        assert!(matches!(
+            res.mapper(MapperConfig::default()),
+            Err(MapperError::Storage(_))
+        ));
+    });
+}

@@ -1,0 +1,210 @@
+//! Development harness for the mapper on a CARMEN log: runs `cloi_core::mapper::Mapper` with
+//! the back-end stepped after every scan and scores the final, real-time (GPE) and front-end
+//! trajectories against the GMapping reference relations, in process.
+//!
+//! `cargo run --release -p cloi-host --example mapper_eval -- LOG.clf [MAX_SCANS]`
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use cloi_core::frontend::BeamGeometry;
+use cloi_core::mapper::{MapperConfig, ScanInput};
+use cloi_core::profile::OfficeResources;
+use cloi_core::Se2;
+use cloi_host::eval::relations::{relations_from_reference, score, PlanarTrajectory};
+use cloi_host::io::carmen::{CarmenReader, CarmenRecord};
+
+struct Stderr;
+impl log::Log for Stderr {
+    fn enabled(&self, _: &log::Metadata<'_>) -> bool {
+        true
+    }
+    fn log(&self, r: &log::Record<'_>) {
+        eprintln!("{}", r.args());
+    }
+    fn flush(&self) {}
+}
+
+fn main() -> Result<()> {
+    if std::env::var_os("DEBUG").is_some() {
+        log::set_logger(&Stderr).ok();
+        log::set_max_level(log::LevelFilter::Debug);
+    }
+    let stack = size_of::<OfficeResources>() * 3 + (64 << 20);
+    std::thread::Builder::new()
+        .stack_size(stack)
+        .spawn(run)?
+        .join()
+        .map_err(|_| anyhow::anyhow!("mapper thread panicked"))?
+}
+
+fn run() -> Result<()> {
+    let args: Vec<String> = std::env::args().collect();
+    let path = PathBuf::from(args.get(1).context("usage: mapper_eval LOG.clf [MAX]")?);
+    let max: usize = args.get(2).map_or(Ok(usize::MAX), |s| s.parse())?;
+    let mut res = Box::new(OfficeResources::new());
+    let cfg = MapperConfig::default();
+    let mut mapper = res.mapper(cfg).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut offset_x = 0.0;
+    let mut records: Vec<(i64, u32, Se2, Se2, Se2)> = Vec::new();
+    let t0 = Instant::now();
+    let (mut first, mut last) = (None, 0i64);
+    for rec in CarmenReader::open(&path, false)? {
+        match rec? {
+            CarmenRecord::Param { name, value } if name == "robot_frontlaser_offset" => {
+                offset_x = value.parse().unwrap_or(0.0);
+            }
+            CarmenRecord::Laser(l) => {
+                if records.len() >= max {
+                    break;
+                }
+                if let Some((x, y, t)) = l.odom_pose {
+                    let _ = mapper.push_odometry(l.stamp_ns, Se2::new(x, y, t));
+                }
+                let scan = ScanInput {
+                    stamp: l.stamp_ns,
+                    ranges: &l.ranges,
+                    geometry: BeamGeometry {
+                        angle_min: l.angle_min,
+                        angle_increment: l.angle_increment,
+                        range_min: 0.05,
+                        range_max: l.max_range.unwrap_or(80.0),
+                    },
+                    mounting: Se2::new(offset_x, 0.0, 0.0),
+                };
+                if let Ok(out) = mapper.push_scan(&scan, false) {
+                    first.get_or_insert(l.stamp_ns);
+                    last = l.stamp_ns;
+                    let ref_f = mapper
+                        .node_of(out.reference_serial)
+                        .and_then(|i| mapper.nodes().get(i))
+                        .map(|m| m.frontend)
+                        .unwrap_or(Se2::IDENTITY);
+                    records.push((
+                        out.stamp,
+                        out.reference_serial,
+                        ref_f.between(&out.frontend),
+                        out.pose,
+                        out.frontend,
+                    ));
+                }
+                mapper.step_backend(5);
+            }
+            _ => {}
+        }
+    }
+    let t_stream = t0.elapsed().as_secs_f64();
+    while mapper.step_backend(10) != cloi_core::mapper::BackendStep::Idle {}
+    // Final optimization regardless of pending work.
+    let wall = t0.elapsed().as_secs_f64();
+    let stats = mapper.stats();
+    println!("{stats:#?}");
+    println!(
+        "nodes {} edges {} data {:.1} s wall {:.2} s (stream {:.2} s) ratio {:.0}x",
+        mapper.graph().node_count(),
+        mapper.graph().edge_count(),
+        (last - first.unwrap_or(0)) as f64 * 1e-9,
+        wall,
+        t_stream,
+        (last - first.unwrap_or(0)) as f64 * 1e-9 / wall
+    );
+    let fin = PlanarTrajectory {
+        poses: records
+            .iter()
+            .filter_map(|r| Some((r.0, mapper.keyframe_pose(r.1)?.compose(&r.2))))
+            .collect(),
+    };
+    let gpe = PlanarTrajectory {
+        poses: records.iter().map(|r| (r.0, r.3)).collect(),
+    };
+    let fe = PlanarTrajectory {
+        poses: records.iter().map(|r| (r.0, r.4)).collect(),
+    };
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
+    let refp = path.with_file_name(name.replace(".clf", ".gfs_reference_poses.txt"));
+    if let Ok(reference) = PlanarTrajectory::load_reference(&refp) {
+        let rels = relations_from_reference(&reference, 1.0);
+        for (n, t) in [("final", &fin), ("gpe", &gpe), ("frontend", &fe)] {
+            let s = score(t, &rels, 0.0)?;
+            println!(
+                "{n}: trans {:.4} +- {:.4} m rot {:.3} deg pairs {} missing {}",
+                s.trans_mean_m, s.trans_std_m, s.rot_mean_deg, s.pairs_used, s.pairs_missing
+            );
+        }
+    }
+    if std::env::var_os("LOOPS").is_some() {
+        let g = mapper.graph();
+        for e in g
+            .edges()
+            .iter()
+            .filter(|e| e.kind == cloi_core::graph::EdgeKind::Loop)
+        {
+            let (a, b) = (
+                g.nodes()[e.from.0 as usize].pose,
+                g.nodes()[e.to.0 as usize].pose,
+            );
+            let r = e.residual(&a, &b);
+            println!(
+                "loop {} -> {}: residual {:.3} {:.3} {:.3} chi2 {:.1}",
+                e.from.0,
+                e.to.0,
+                r[0],
+                r[1],
+                r[2],
+                e.chi2_of(&r)
+            );
+        }
+    }
+    if let Ok(png) = std::env::var("PNG") {
+        let res = cfg.grid.resolution as f64;
+        let side = cfg.grid.side as i64;
+        let mut pts = Vec::new();
+        for (pose, cells) in mapper.submaps() {
+            let (c, s) = (pose.theta.cos(), pose.theta.sin());
+            for iy in 0..side {
+                for ix in 0..side {
+                    let l = cells[(iy * side + ix) as usize];
+                    if l == 0 {
+                        continue;
+                    }
+                    let lx = (ix as f64 + 0.5 - side as f64 / 2.0) * res;
+                    let ly = (iy as f64 + 0.5 - side as f64 / 2.0) * res;
+                    pts.push((pose.x + c * lx - s * ly, pose.y + s * lx + c * ly, l));
+                }
+            }
+        }
+        let (minx, maxx) = pts
+            .iter()
+            .fold((f64::MAX, f64::MIN), |a, p| (a.0.min(p.0), a.1.max(p.0)));
+        let (miny, maxy) = pts
+            .iter()
+            .fold((f64::MAX, f64::MIN), |a, p| (a.0.min(p.1), a.1.max(p.1)));
+        let w = ((maxx - minx) / res) as u32 + 1;
+        let h = ((maxy - miny) / res) as u32 + 1;
+        let mut acc = vec![0i32; (w * h) as usize];
+        for (x, y, l) in pts {
+            let i = ((maxy - y) / res) as u32 * w + ((x - minx) / res) as u32;
+            acc[i as usize] += l as i32;
+        }
+        let img = image::GrayImage::from_fn(w, h, |x, y| {
+            let v = acc[(y * w + x) as usize];
+            image::Luma([if v > 10 {
+                0
+            } else if v < -10 {
+                255
+            } else {
+                180
+            }])
+        });
+        img.save(&png)?;
+    }
+    let mut jump: f64 = 0.0;
+    for w in records.windows(2) {
+        let g = w[0].3.between(&w[1].3);
+        let f = w[0].4.between(&w[1].4);
+        jump = jump.max((g.x - f.x).hypot(g.y - f.y));
+    }
+    println!("gpe max jump {jump:.4} m");
+    Ok(())
+}
