@@ -9,6 +9,7 @@ pub mod dataset;
 pub mod eval;
 pub mod graph_io;
 pub mod io;
+pub mod map;
 pub mod optimize;
 pub mod prune;
 pub mod prune_online;

@@ -1,0 +1,494 @@
+//! The `cloi map` configuration: presets for the `home`, `office` and `airport` profiles, and
+//! a TOML file (`--config FILE`) that overrides any part of the preset.
+//!
+//! A file names only what it changes; every field it leaves out keeps the preset's value
+//! (the file is merged key by key onto the preset before it is read). A key the
+//! configuration does not have is an error naming the key, the file and the keys that
+//! exist. `docs/map-config.toml` documents every field with the `home` values.
+//!
+//! These are plain host structures; the runner maps them onto the core's configuration
+//! types.
+
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
+use serde::{Deserialize, Serialize};
+
+/// A memory and size profile of the mapper.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Profile {
+    /// A home (cleaning robot): 4.1 m submaps at 5 cm, 10 m LiDAR.
+    #[default]
+    Home,
+    /// An office floor: 10 m submaps at 5 cm.
+    Office,
+    /// An airport hall (guide robot): 10 m submaps at 10 cm.
+    Airport,
+}
+
+impl std::str::FromStr for Profile {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "home" => Ok(Profile::Home),
+            "office" => Ok(Profile::Office),
+            "airport" => Ok(Profile::Airport),
+            _ => Err(format!(
+                "unknown profile {s:?}; use home, office or airport"
+            )),
+        }
+    }
+}
+
+/// Scan preprocessing.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PreprocessSection {
+    /// Beams shorter than this are dropped, metres.
+    pub range_min: f32,
+    /// Beams longer than this are dropped (also when the sensor reports more), metres.
+    pub range_max: f32,
+    /// Voxel edge for downsampling the scan points, metres; 0 disables it.
+    pub voxel_size: f32,
+    /// Keep one beam in this many (1 keeps all).
+    pub decimation: u16,
+}
+
+/// Scan-to-submap ICP of the front-end.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IcpSection {
+    /// Iteration limit.
+    pub max_iterations: u16,
+    /// Correspondences farther than this are ignored, metres.
+    pub max_correspondence: f32,
+    /// Huber threshold on point-to-line residuals, metres.
+    pub huber: f64,
+    /// Fewest points and correspondences a match needs.
+    pub min_points: u32,
+}
+
+/// When a scan becomes a keyframe.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KeyframeSection {
+    /// Distance travelled since the last keyframe, metres.
+    pub distance: f64,
+    /// Heading change since the last keyframe, radians.
+    pub angle: f64,
+}
+
+/// Occupancy-grid submaps.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SubmapSection {
+    /// Cell edge, metres.
+    pub resolution: f32,
+    /// Cells per side (the submap is `side * resolution` metres square).
+    pub side: u16,
+    /// A new submap starts when the robot is this far from the current submap's origin,
+    /// metres.
+    pub new_submap_distance: f64,
+}
+
+impl SubmapSection {
+    /// Edge of a submap, metres.
+    pub fn size_m(&self) -> f64 {
+        f64::from(self.side) * f64::from(self.resolution)
+    }
+}
+
+/// Loop closure.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LoopClosureSection {
+    /// Half-width of the translation search window of the global scan-to-submap search,
+    /// metres.
+    pub search_window_xy: f64,
+    /// Half-width of its rotation window, radians.
+    pub search_window_theta: f64,
+    /// Smallest accepted match score, in [0, 1].
+    pub min_score: f32,
+    /// Most candidate submaps searched per keyframe.
+    pub max_candidates: u16,
+    /// Squared Mahalanobis distance (3 degrees of freedom) within which a submap is a
+    /// candidate, given the current pose's uncertainty.
+    pub mahalanobis_gate: f64,
+}
+
+/// Global pose estimation (the real-time pose of every frame).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GpeSection {
+    /// Time budget per frame, microseconds; a frame that misses it gets the worst-case
+    /// prediction.
+    pub deadline_us: u64,
+}
+
+/// The pose-graph back-end.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BackendSection {
+    /// Optimize after this many new keyframes.
+    pub optimize_every_keyframes: u32,
+    /// Gauss-Newton / Levenberg-Marquardt iterations per optimization.
+    pub iterations: u32,
+    /// Cell edge of the graph pruning (one node kept per cell and heading), metres.
+    pub prune_cell_size: f64,
+}
+
+/// How the run is scheduled.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunSection {
+    /// Run the real-time part and the back-end interleaved with fixed budgets (results are
+    /// identical bit for bit between runs) instead of on two threads.
+    pub deterministic: bool,
+    /// Hold every optimization result back by this many keyframes before the real-time part
+    /// sees it (tests the GPE's local consistency under a slow back-end); 0: no delay.
+    pub backend_delay_keyframes: u32,
+}
+
+/// The whole configuration of `cloi map`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MapConfig {
+    /// Scan preprocessing.
+    pub preprocess: PreprocessSection,
+    /// Front-end ICP.
+    pub icp: IcpSection,
+    /// Keyframe selection.
+    pub keyframes: KeyframeSection,
+    /// Submaps.
+    pub submaps: SubmapSection,
+    /// Loop closure.
+    pub loop_closure: LoopClosureSection,
+    /// Real-time pose estimation.
+    pub gpe: GpeSection,
+    /// Back-end.
+    pub backend: BackendSection,
+    /// Scheduling.
+    pub run: RunSection,
+}
+
+impl MapConfig {
+    /// The preset of a profile.
+    pub fn preset(profile: Profile) -> Self {
+        let home = MapConfig {
+            preprocess: PreprocessSection {
+                range_min: 0.1,
+                range_max: 10.0,
+                voxel_size: 0.05,
+                decimation: 1,
+            },
+            icp: IcpSection {
+                max_iterations: 30,
+                max_correspondence: 0.5,
+                huber: 0.05,
+                min_points: 20,
+            },
+            keyframes: KeyframeSection {
+                distance: 0.2,
+                angle: 0.35,
+            },
+            submaps: SubmapSection {
+                resolution: 0.05,
+                side: 82,
+                new_submap_distance: 1.5,
+            },
+            loop_closure: LoopClosureSection {
+                search_window_xy: 1.5,
+                search_window_theta: 0.5,
+                min_score: 0.55,
+                max_candidates: 4,
+                // chi-square, 3 degrees of freedom, 99 %.
+                mahalanobis_gate: 11.34,
+            },
+            gpe: GpeSection { deadline_us: 5_000 },
+            backend: BackendSection {
+                optimize_every_keyframes: 10,
+                iterations: 10,
+                prune_cell_size: 0.5,
+            },
+            run: RunSection {
+                deterministic: false,
+                backend_delay_keyframes: 0,
+            },
+        };
+        match profile {
+            Profile::Home => home,
+            Profile::Office => MapConfig {
+                preprocess: PreprocessSection {
+                    range_max: 30.0,
+                    ..home.preprocess
+                },
+                submaps: SubmapSection {
+                    resolution: 0.05,
+                    side: 200,
+                    new_submap_distance: 4.0,
+                },
+                loop_closure: LoopClosureSection {
+                    search_window_xy: 3.0,
+                    search_window_theta: 0.6,
+                    ..home.loop_closure
+                },
+                ..home
+            },
+            Profile::Airport => MapConfig {
+                preprocess: PreprocessSection {
+                    range_max: 30.0,
+                    voxel_size: 0.1,
+                    ..home.preprocess
+                },
+                keyframes: KeyframeSection {
+                    distance: 0.5,
+                    angle: 0.35,
+                },
+                submaps: SubmapSection {
+                    resolution: 0.1,
+                    side: 100,
+                    new_submap_distance: 4.0,
+                },
+                loop_closure: LoopClosureSection {
+                    search_window_xy: 4.0,
+                    search_window_theta: 0.6,
+                    ..home.loop_closure
+                },
+                backend: BackendSection {
+                    prune_cell_size: 1.0,
+                    ..home.backend
+                },
+                ..home
+            },
+        }
+    }
+
+    /// The preset of `profile` with the TOML text `text` merged onto it; `name` names the
+    /// text in errors (a file name).
+    ///
+    /// # Errors
+    /// Invalid TOML, a key the configuration does not have, a value of the wrong type, or
+    /// values that fail [`MapConfig::validate`].
+    pub fn from_toml(profile: Profile, text: &str, name: &str) -> Result<Self> {
+        let patch: toml::Table =
+            toml::from_str(text).with_context(|| format!("{name}: not valid TOML"))?;
+        let base = toml::Table::try_from(Self::preset(profile))
+            .context("serialising the preset (a bug)")?;
+        let merged = merge(base, patch, "", name)?;
+        let cfg: MapConfig = toml::Value::Table(merged)
+            .try_into()
+            .with_context(|| format!("{name}: invalid configuration"))?;
+        cfg.validate().with_context(|| name.to_owned())?;
+        Ok(cfg)
+    }
+
+    /// The preset of `profile`, overridden by the file at `path` if given.
+    ///
+    /// # Errors
+    /// See [`MapConfig::from_toml`]; an unreadable file.
+    pub fn load(profile: Profile, path: Option<&Path>) -> Result<Self> {
+        match path {
+            None => Ok(Self::preset(profile)),
+            Some(p) => {
+                let text = std::fs::read_to_string(p)
+                    .with_context(|| format!("reading {}", p.display()))?;
+                Self::from_toml(profile, &text, &p.display().to_string())
+            }
+        }
+    }
+
+    /// The configuration as TOML (every field; e.g. to keep with a run's results).
+    ///
+    /// # Errors
+    /// Never for a valid configuration (serialisation of plain numbers).
+    pub fn to_toml(&self) -> Result<String> {
+        toml::to_string_pretty(self).context("serialising the map configuration")
+    }
+
+    /// Checks that values are usable (positive sizes, ordered limits, scores in [0, 1]).
+    ///
+    /// # Errors
+    /// The first offending field, by its TOML path.
+    pub fn validate(&self) -> Result<()> {
+        let p = &self.preprocess;
+        if !(p.range_min >= 0.0 && p.range_max > p.range_min && p.range_max.is_finite()) {
+            bail!("preprocess: need 0 <= range_min < range_max (finite)");
+        }
+        if !(p.voxel_size >= 0.0 && p.voxel_size.is_finite()) {
+            bail!("preprocess.voxel_size must be >= 0");
+        }
+        if p.decimation == 0 {
+            bail!("preprocess.decimation must be at least 1");
+        }
+        let i = &self.icp;
+        let positive = |v: f64| v > 0.0 && v.is_finite();
+        if i.max_iterations == 0 || !positive(f64::from(i.max_correspondence)) || !positive(i.huber)
+        {
+            bail!("icp: max_iterations, max_correspondence and huber must be positive");
+        }
+        let k = &self.keyframes;
+        if !(k.distance > 0.0 && k.angle > 0.0) {
+            bail!("keyframes: distance and angle must be positive");
+        }
+        let s = &self.submaps;
+        if !(s.resolution > 0.0 && s.resolution.is_finite()) || s.side < 8 {
+            bail!("submaps: resolution must be positive and side at least 8 cells");
+        }
+        if !(s.new_submap_distance > 0.0 && s.new_submap_distance < s.size_m()) {
+            bail!(
+                "submaps.new_submap_distance must be positive and below the submap size ({} m)",
+                s.size_m()
+            );
+        }
+        let l = &self.loop_closure;
+        if !(l.search_window_xy >= 0.0 && l.search_window_theta >= 0.0) {
+            bail!("loop_closure: search windows must be >= 0");
+        }
+        if !(0.0..=1.0).contains(&l.min_score) {
+            bail!("loop_closure.min_score must be in [0, 1]");
+        }
+        if !positive(l.mahalanobis_gate) {
+            bail!("loop_closure.mahalanobis_gate must be positive");
+        }
+        if self.gpe.deadline_us == 0 {
+            bail!("gpe.deadline_us must be positive");
+        }
+        let b = &self.backend;
+        if b.optimize_every_keyframes == 0 || b.iterations == 0 || !positive(b.prune_cell_size) {
+            bail!(
+                "backend: optimize_every_keyframes, iterations and prune_cell_size must be positive"
+            );
+        }
+        Ok(())
+    }
+}
+
+/// Merges `patch` onto `base` key by key; a key of `patch` missing in `base` is an error.
+fn merge(mut base: toml::Table, patch: toml::Table, at: &str, name: &str) -> Result<toml::Table> {
+    for (key, value) in patch {
+        let path = if at.is_empty() {
+            key.clone()
+        } else {
+            format!("{at}.{key}")
+        };
+        let Some(slot) = base.get_mut(&key) else {
+            let known: Vec<&str> = base.keys().map(String::as_str).collect();
+            let place = if at.is_empty() {
+                "at the top level".to_owned()
+            } else {
+                format!("in [{at}]")
+            };
+            bail!(
+                "{name}: unknown key `{path}`; the keys {place} are: {}",
+                known.join(", ")
+            );
+        };
+        match (slot, value) {
+            (toml::Value::Table(b), toml::Value::Table(p)) => {
+                let merged = merge(std::mem::take(b), p, &path, name)?;
+                *b = merged;
+            }
+            (toml::Value::Table(_), _) => bail!("{name}: `{path}` must be a table [{path}]"),
+            (slot, value) => *slot = value,
+        }
+    }
+    Ok(base)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn example() -> String {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../docs/map-config.toml");
+        std::fs::read_to_string(&path).expect("docs/map-config.toml")
+    }
+
+    #[test]
+    fn presets_are_valid_and_differ_where_documented() {
+        for p in [Profile::Home, Profile::Office, Profile::Airport] {
+            MapConfig::preset(p).validate().expect("valid preset");
+        }
+        let home = MapConfig::preset(Profile::Home);
+        let office = MapConfig::preset(Profile::Office);
+        let airport = MapConfig::preset(Profile::Airport);
+        assert!((home.submaps.size_m() - 4.1).abs() < 1e-6);
+        assert!((office.submaps.size_m() - 10.0).abs() < 1e-6);
+        assert!((airport.submaps.size_m() - 10.0).abs() < 1e-6);
+        assert_eq!(airport.submaps.resolution, 0.1);
+        assert_eq!(office.icp, home.icp);
+    }
+
+    #[test]
+    fn documented_example_parses_and_equals_the_home_preset() {
+        let cfg = MapConfig::from_toml(Profile::Office, &example(), "docs/map-config.toml")
+            .expect("example parses");
+        // The example spells out every home value, so it turns any preset into home.
+        assert_eq!(cfg, MapConfig::preset(Profile::Home));
+        // And it names every field: a full parse without merging works too.
+        let full: MapConfig = toml::from_str(&example()).expect("complete");
+        assert_eq!(full, cfg);
+    }
+
+    #[test]
+    fn a_file_overrides_only_what_it_names() {
+        let text = "[icp]\nhuber = 0.1\n\n[run]\ndeterministic = true\n";
+        let cfg = MapConfig::from_toml(Profile::Airport, text, "x.toml").unwrap();
+        let mut want = MapConfig::preset(Profile::Airport);
+        want.icp.huber = 0.1;
+        want.run.deterministic = true;
+        assert_eq!(cfg, want);
+        assert_eq!(
+            MapConfig::from_toml(Profile::Office, "", "empty.toml").unwrap(),
+            MapConfig::preset(Profile::Office)
+        );
+    }
+
+    #[test]
+    fn round_trip_through_toml() {
+        let cfg = MapConfig::preset(Profile::Airport);
+        let text = cfg.to_toml().unwrap();
+        assert_eq!(
+            MapConfig::from_toml(Profile::Home, &text, "t").unwrap(),
+            cfg
+        );
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_values_are_clear_errors() {
+        let err =
+            MapConfig::from_toml(Profile::Home, "[icp]\nmax_iter = 3\n", "my.toml").unwrap_err();
+        let msg = format!("{err:#}");
+        assert!(msg.contains("my.toml: unknown key `icp.max_iter`"), "{msg}");
+        assert!(msg.contains("max_iterations"), "{msg}");
+        let err = MapConfig::from_toml(Profile::Home, "[loops]\nmin_score = 0.5\n", "my.toml")
+            .unwrap_err();
+        let msg = format!("{err:#}");
+        assert!(
+            msg.contains("unknown key `loops`") && msg.contains("loop_closure"),
+            "{msg}"
+        );
+        let err = MapConfig::from_toml(Profile::Home, "icp = 3\n", "my.toml").unwrap_err();
+        assert!(format!("{err:#}").contains("`icp` must be a table"));
+        let err =
+            MapConfig::from_toml(Profile::Home, "[icp]\nhuber = \"x\"\n", "my.toml").unwrap_err();
+        let msg = format!("{err:#}");
+        assert!(msg.contains("my.toml: invalid configuration"), "{msg}");
+        let err = MapConfig::from_toml(
+            Profile::Home,
+            "[loop_closure]\nmin_score = 1.5\n",
+            "my.toml",
+        )
+        .unwrap_err();
+        assert!(format!("{err:#}").contains("min_score"));
+        let err = MapConfig::from_toml(Profile::Home, "[icp\n", "my.toml").unwrap_err();
+        assert!(format!("{err:#}").contains("my.toml: not valid TOML"));
+    }
+
+    #[test]
+    fn profile_names() {
+        assert_eq!("Office".parse::<Profile>(), Ok(Profile::Office));
+        assert!("garage".parse::<Profile>().is_err());
+    }
+}

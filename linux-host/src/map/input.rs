@@ -1,0 +1,1258 @@
+//! The mapper's input: one time-ordered stream of [`SensorEvent`]s from a CARMEN log, a ROS 2
+//! bag (MCAP) or the simulator, read with constant memory.
+//!
+//! * **CARMEN** (`.clf`, `.log`, also gzip/bzip2-compressed; recognised as "not MCAP"):
+//!   `ODOM` lines become [`SensorEvent::Odometry`]; the chosen laser's lines become
+//!   [`SensorEvent::Scan`] (see [`LaserChoice`]) carrying the odometry pose of the line in
+//!   [`ScanEvent::odom`]. When no `ODOM` line came since the previous scan (mit-csail has none
+//!   at all), the line's odometry pose is also emitted as an `Odometry` event just before the
+//!   scan. The laser's mounting is [`InputOptions::laser_offset`] if given, else the log's
+//!   `PARAM robot_frontlaser_offset` / `robot_frontlaser_side_offset` /
+//!   `robot_frontlaser_angular_offset` (`robot_rearlaser_*` for the rear laser, which faces
+//!   backwards) if any came before the first scan, else the offset between the first scan
+//!   line's laser pose and odometry pose, else the identity; it is fixed at the first scan.
+//!   `range_max` is [`InputOptions::range_max`], else the line's own (`ROBOTLASER1`,
+//!   `RAWLASER`), else `PARAM robot_front_laser_max`, else
+//!   [`crate::io::convert::DEFAULT_RANGE_MAX`] (the logs' "no return" value 81.83 m lies
+//!   beyond it); `range_min` is 0.
+//! * **ROS 2 bags** (an `.mcap` file, or a bag directory holding one): `LaserScan` ->
+//!   `Scan`, `Odometry` -> `Odometry`, `Imu` -> `Gyro` (`angular_velocity.z`), all stamped
+//!   with their header time. One topic per kind is used: the one named in
+//!   [`InputOptions::topics`], else the first that delivers a message (messages on other
+//!   topics of that kind are counted as skipped). The laser's mounting is
+//!   [`InputOptions::laser_offset`] if given, else the chain of static transforms
+//!   (`/tf_static`) from the scan's frame up to the robot frame (the odometry's child frame,
+//!   else [`InputOptions::base_frame`]), else the identity (with a warning).
+//! * **Simulator** ([`sim_input`]): the built-in worlds of `cloi sim` with a LiDAR, wheel
+//!   odometry and gyro, run on a background thread that feeds a bounded channel.
+//!
+//! Events are delivered in the order the source has them. Time stamps that step back are
+//! passed through unchanged (the mapper rejects and counts them) and counted here, per
+//! kind of event, in [`InputStats::backwards_stamps`]. NaN and infinite ranges are passed
+//! through.
+//!
+//! **Statistics.** [`InputStream::stats`] returns a snapshot of the counts at any time;
+//! [`InputStream::stats_handle`] gives a shared handle that stays valid after the stream
+//! has been moved into a loop or another owner (read it once the stream has ended for the
+//! final counts).
+
+use std::collections::{HashMap, VecDeque};
+use std::fs::File;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{Receiver, SyncSender};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+
+use anyhow::{bail, Context, Result};
+use cloi_core::Se2;
+
+use crate::io::bag_read::{BagReadOptions, BagReader, SensorMsg, TopicSelection};
+use crate::io::carmen::{CarmenLaser, CarmenReader, CarmenRecord, LaserSource};
+use crate::io::convert::DEFAULT_RANGE_MAX;
+use crate::io::ros2::{LaserScan, TfMessage};
+use crate::sim::engine::{Payload, Sample, SampleSink};
+use crate::sim::output::EPOCH_NS;
+use crate::sim::{SensorSet, SimConfig, Simulation, World};
+
+/// One sensor measurement for the mapper.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SensorEvent {
+    /// Wheel odometry pose (robot frame in the odometry frame).
+    Odometry {
+        /// Time stamp (ns).
+        t_ns: i64,
+        /// The pose.
+        pose: Se2,
+    },
+    /// Gyro yaw rate, rad/s.
+    Gyro {
+        /// Time stamp (ns).
+        t_ns: i64,
+        /// Rate about the robot's z axis, rad/s.
+        yaw_rate: f64,
+    },
+    /// A planar laser scan.
+    Scan(ScanEvent),
+}
+
+impl SensorEvent {
+    /// The event's time stamp (ns).
+    pub fn t_ns(&self) -> i64 {
+        match self {
+            SensorEvent::Odometry { t_ns, .. } | SensorEvent::Gyro { t_ns, .. } => *t_ns,
+            SensorEvent::Scan(s) => s.t_ns,
+        }
+    }
+}
+
+/// A planar laser scan.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScanEvent {
+    /// Time stamp (ns).
+    pub t_ns: i64,
+    /// Ranges, metres (NaN, infinite and out-of-limit values are passed through).
+    pub ranges: Vec<f32>,
+    /// Bearing of the first beam in the laser frame, radians.
+    pub angle_min: f32,
+    /// Bearing step, radians.
+    pub angle_increment: f32,
+    /// Closest valid range, metres.
+    pub range_min: f32,
+    /// Farthest valid range, metres.
+    pub range_max: f32,
+    /// Pose of the laser on the robot.
+    pub laser_offset: Se2,
+    /// Odometry pose attached to the scan line if the source has one (CARMEN `FLASER`,
+    /// `RLASER`, `ROBOTLASER1`).
+    pub odom: Option<Se2>,
+}
+
+/// Which laser of a CARMEN log is used.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum LaserChoice {
+    /// The front laser: `FLASER` or `ROBOTLASER1`, whichever comes first (the other is
+    /// skipped).
+    #[default]
+    Front,
+    /// `FLASER` only.
+    Flaser,
+    /// `ROBOTLASER1` only.
+    RobotLaser,
+    /// The rear laser, `RLASER`.
+    Rear,
+    /// `RAWLASER1..4`.
+    Raw(u8),
+}
+
+impl std::str::FromStr for LaserChoice {
+    type Err = String;
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        Ok(match s.to_ascii_lowercase().as_str() {
+            "front" => LaserChoice::Front,
+            "flaser" => LaserChoice::Flaser,
+            "robotlaser" | "robotlaser1" => LaserChoice::RobotLaser,
+            "rear" | "rlaser" => LaserChoice::Rear,
+            "rawlaser1" | "raw1" => LaserChoice::Raw(1),
+            "rawlaser2" | "raw2" => LaserChoice::Raw(2),
+            "rawlaser3" | "raw3" => LaserChoice::Raw(3),
+            "rawlaser4" | "raw4" => LaserChoice::Raw(4),
+            _ => {
+                return Err(format!(
+                    "unknown laser {s:?}; use front, flaser, robotlaser, rear or raw1..raw4"
+                ))
+            }
+        })
+    }
+}
+
+/// How an input is read.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct InputOptions {
+    /// Damage in the file is an error (else damaged records are skipped and counted).
+    pub strict: bool,
+    /// The CARMEN laser to use.
+    pub laser: LaserChoice,
+    /// The laser's pose on the robot, overriding what the input says.
+    pub laser_offset: Option<Se2>,
+    /// `range_max` of every scan, overriding what the input says (m).
+    pub range_max: Option<f32>,
+    /// Bag topics (scan, odometry, IMU) to use; `None` takes the first of each kind.
+    pub topics: TopicSelection,
+    /// Robot frame for the laser's static transform when the bag has no odometry telling it
+    /// (`None`: `base_link`).
+    pub base_frame: Option<String>,
+}
+
+/// Counts of what an input delivered.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct InputStats {
+    /// Scan events.
+    pub scans: u64,
+    /// Odometry events (including those made from CARMEN laser lines).
+    pub odometry: u64,
+    /// Odometry events made from the odometry pose of a CARMEN laser line.
+    pub odometry_from_scans: u64,
+    /// Gyro events.
+    pub gyro: u64,
+    /// Events whose stamp is earlier than the previous event's of the same kind.
+    pub backwards_stamps: u64,
+    /// Records not delivered: damaged or undecodable records, lasers or topics not chosen,
+    /// unknown line types, images and other messages the mapper does not use.
+    pub skipped: u64,
+    /// Earliest stamp delivered (ns).
+    pub first_ns: Option<i64>,
+    /// Latest stamp delivered (ns).
+    pub last_ns: Option<i64>,
+    /// Bytes read from the file so far (decompressed text for CARMEN logs).
+    pub bytes_read: u64,
+    /// The laser mounting used (once the first scan has been read).
+    pub laser_offset: Option<Se2>,
+    /// Where the laser mounting came from (`option`, `PARAM`, `laser line`, `tf_static`,
+    /// `simulator`, `identity`).
+    pub laser_offset_source: Option<String>,
+    /// Warnings of the reader (damage, truncation, a missing transform).
+    pub warnings: Vec<String>,
+}
+
+impl InputStats {
+    /// Seconds of data between the first and the last stamp.
+    pub fn data_seconds(&self) -> f64 {
+        match (self.first_ns, self.last_ns) {
+            (Some(a), Some(b)) => (b - a) as f64 * 1e-9,
+            _ => 0.0,
+        }
+    }
+}
+
+/// A shared handle on the statistics of an [`InputStream`].
+pub type StatsHandle = Arc<Mutex<InputStats>>;
+
+/// What the whole input amounts to, for a progress bar.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum InputSize {
+    /// Bytes of the file ([`InputStats::bytes_read`] counts up to it).
+    Bytes(u64),
+    /// Seconds of data (simulation: [`InputStats::data_seconds`] counts up to it).
+    Seconds(f64),
+    /// Unknown (compressed input).
+    Unknown,
+}
+
+/// A source of events (one per input kind).
+trait EventSource {
+    /// The next event, `None` at the end.
+    fn next_event(&mut self, stats: &mut InputStats) -> Option<Result<SensorEvent>>;
+}
+
+/// The stream of events of one input, with its statistics.
+pub struct InputStream {
+    source: Box<dyn EventSource>,
+    stats: StatsHandle,
+    last: [Option<i64>; 3],
+    size: InputSize,
+    done: bool,
+}
+
+impl std::fmt::Debug for InputStream {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("InputStream")
+            .field("size", &self.size)
+            .field("done", &self.done)
+            .finish_non_exhaustive()
+    }
+}
+
+impl InputStream {
+    fn new(source: Box<dyn EventSource>, size: InputSize) -> Self {
+        Self {
+            source,
+            stats: Arc::new(Mutex::new(InputStats::default())),
+            last: [None; 3],
+            size,
+            done: false,
+        }
+    }
+
+    /// A snapshot of the counts so far (final once the stream has ended).
+    pub fn stats(&self) -> InputStats {
+        lock(&self.stats).clone()
+    }
+
+    /// A shared handle on the counts, valid after the stream is moved or dropped.
+    pub fn stats_handle(&self) -> StatsHandle {
+        Arc::clone(&self.stats)
+    }
+
+    /// The size of the whole input, for progress reporting.
+    pub fn size(&self) -> InputSize {
+        self.size
+    }
+}
+
+fn lock(stats: &StatsHandle) -> std::sync::MutexGuard<'_, InputStats> {
+    // A panic elsewhere while holding the lock leaves plain counters: still usable.
+    stats
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+impl Iterator for InputStream {
+    type Item = Result<SensorEvent>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.done {
+            return None;
+        }
+        let mut stats = lock(&self.stats);
+        let item = self.source.next_event(&mut stats);
+        match &item {
+            None | Some(Err(_)) => self.done = true,
+            Some(Ok(event)) => {
+                let t = event.t_ns();
+                let kind = match event {
+                    SensorEvent::Scan(_) => {
+                        stats.scans += 1;
+                        0
+                    }
+                    SensorEvent::Odometry { .. } => {
+                        stats.odometry += 1;
+                        1
+                    }
+                    SensorEvent::Gyro { .. } => {
+                        stats.gyro += 1;
+                        2
+                    }
+                };
+                if self.last[kind].is_some_and(|l| t < l) {
+                    stats.backwards_stamps += 1;
+                }
+                self.last[kind] = Some(t);
+                stats.first_ns = Some(stats.first_ns.map_or(t, |f| f.min(t)));
+                stats.last_ns = Some(stats.last_ns.map_or(t, |l| l.max(t)));
+            }
+        }
+        item
+    }
+}
+
+/// The MCAP magic bytes.
+const MCAP_MAGIC: &[u8] = b"\x89MCAP0\r\n";
+
+/// Resolves a bag directory (holding exactly one `.mcap` file) to that file.
+fn resolve_path(path: &Path) -> Result<PathBuf> {
+    if !path.is_dir() {
+        return Ok(path.to_owned());
+    }
+    let mut found = Vec::new();
+    for entry in std::fs::read_dir(path).with_context(|| format!("reading {}", path.display()))? {
+        let p = entry?.path();
+        if p.extension().is_some_and(|e| e == "mcap") {
+            found.push(p);
+        }
+    }
+    found.sort();
+    match found.len() {
+        1 => Ok(found.remove(0)),
+        0 => bail!("{}: a directory without an .mcap file", path.display()),
+        n => bail!(
+            "{}: a directory with {n} .mcap files; name one of them",
+            path.display()
+        ),
+    }
+}
+
+/// Opens a CARMEN log or a ROS 2 bag (recognised by its content) as a stream of events.
+///
+/// # Errors
+/// The file cannot be opened.
+pub fn open_input(path: &Path, opts: &InputOptions) -> Result<InputStream> {
+    let path = resolve_path(path)?;
+    let mut head = [0u8; 8];
+    let mut file = File::open(&path).with_context(|| format!("opening {}", path.display()))?;
+    let n = file
+        .read(&mut head)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let len = file.metadata().map(|m| m.len()).ok();
+    drop(file);
+    if head[..n] == *MCAP_MAGIC {
+        let options = BagReadOptions {
+            strict: opts.strict,
+            topics: opts.topics.clone(),
+            ..BagReadOptions::default()
+        };
+        let reader = BagReader::open(&path, options)?;
+        let size = len.map_or(InputSize::Unknown, InputSize::Bytes);
+        Ok(InputStream::new(
+            Box::new(BagSource::new(reader, opts)),
+            size,
+        ))
+    } else {
+        let compressed = head.starts_with(&[0x1f, 0x8b]) || head.starts_with(b"BZh");
+        let reader = CarmenReader::open(&path, opts.strict)?;
+        let size = match (compressed, len) {
+            (false, Some(l)) => InputSize::Bytes(l),
+            _ => InputSize::Unknown,
+        };
+        Ok(InputStream::new(
+            Box::new(CarmenSource::new(reader, opts)),
+            size,
+        ))
+    }
+}
+
+/// A CARMEN log from a reader already opened (tests, in-memory logs).
+pub fn carmen_input(reader: CarmenReader, opts: &InputOptions) -> InputStream {
+    InputStream::new(
+        Box::new(CarmenSource::new(reader, opts)),
+        InputSize::Unknown,
+    )
+}
+
+// ---------------------------------------------------------------------------------------
+// CARMEN
+
+/// `PARAM`s describing a laser's mounting.
+#[derive(Debug, Clone, Copy, Default)]
+struct MountParams {
+    x: Option<f64>,
+    y: Option<f64>,
+    theta: Option<f64>,
+}
+
+impl MountParams {
+    fn any(&self) -> bool {
+        self.x.is_some() || self.y.is_some() || self.theta.is_some()
+    }
+
+    /// The mounting; `facing` is the heading of a laser mounted without an angular offset.
+    fn pose(&self, facing: f64) -> Se2 {
+        Se2::new(
+            self.x.unwrap_or(0.0),
+            self.y.unwrap_or(0.0),
+            cloi_core::geom::wrap_angle(facing + self.theta.unwrap_or(0.0)),
+        )
+    }
+}
+
+struct CarmenSource {
+    reader: CarmenReader,
+    choice: LaserChoice,
+    /// The source locked onto by [`LaserChoice::Front`].
+    locked: Option<LaserSource>,
+    offset_override: Option<Se2>,
+    range_max_override: Option<f32>,
+    front_params: MountParams,
+    rear_params: MountParams,
+    front_laser_max: Option<f32>,
+    offset: Option<Se2>,
+    odom_since_scan: bool,
+    pending: VecDeque<SensorEvent>,
+    ignored: u64,
+    warned_offsets: bool,
+}
+
+fn pose_of(p: (f64, f64, f64)) -> Se2 {
+    Se2::new(p.0, p.1, p.2)
+}
+
+impl CarmenSource {
+    fn new(reader: CarmenReader, opts: &InputOptions) -> Self {
+        Self {
+            reader,
+            choice: opts.laser,
+            locked: None,
+            offset_override: opts.laser_offset,
+            range_max_override: opts.range_max,
+            front_params: MountParams::default(),
+            rear_params: MountParams::default(),
+            front_laser_max: None,
+            offset: None,
+            odom_since_scan: false,
+            pending: VecDeque::with_capacity(2),
+            ignored: 0,
+            warned_offsets: false,
+        }
+    }
+
+    fn wanted(&mut self, source: LaserSource) -> bool {
+        match self.choice {
+            LaserChoice::Front => match self.locked {
+                Some(l) => l == source,
+                None if matches!(source, LaserSource::Front | LaserSource::Robot) => {
+                    self.locked = Some(source);
+                    true
+                }
+                None => false,
+            },
+            LaserChoice::Flaser => source == LaserSource::Front,
+            LaserChoice::RobotLaser => source == LaserSource::Robot,
+            LaserChoice::Rear => source == LaserSource::Rear,
+            LaserChoice::Raw(k) => source == LaserSource::Raw(k),
+        }
+    }
+
+    fn param(&mut self, name: &str, value: &str) {
+        let Ok(v) = value.parse::<f64>() else {
+            return;
+        };
+        match name {
+            "robot_frontlaser_offset" => self.front_params.x = Some(v),
+            "robot_frontlaser_side_offset" => self.front_params.y = Some(v),
+            "robot_frontlaser_angular_offset" => self.front_params.theta = Some(v),
+            "robot_rearlaser_offset" => self.rear_params.x = Some(v),
+            "robot_rearlaser_side_offset" => self.rear_params.y = Some(v),
+            "robot_rearlaser_angular_offset" => self.rear_params.theta = Some(v),
+            "robot_front_laser_max" => self.front_laser_max = Some(v as f32),
+            _ => {}
+        }
+    }
+
+    /// The mounting of the chosen laser, fixed at its first scan.
+    fn offset(&mut self, laser: &CarmenLaser, stats: &mut InputStats) -> Se2 {
+        if let Some(o) = self.offset {
+            return o;
+        }
+        let derived = match (laser.laser_pose, laser.odom_pose) {
+            (Some(l), Some(o)) => Some(pose_of(o).between(&pose_of(l))),
+            _ => None,
+        };
+        let params = match laser.source {
+            LaserSource::Rear => Some((self.rear_params, std::f64::consts::PI)),
+            LaserSource::Front | LaserSource::Robot => Some((self.front_params, 0.0)),
+            LaserSource::Raw(_) => None,
+        }
+        .filter(|(p, _)| p.any())
+        .map(|(p, facing)| p.pose(facing));
+        let (offset, from) = if let Some(o) = self.offset_override {
+            (o, "option")
+        } else if let Some(p) = params {
+            if let Some(d) = derived {
+                let diff = p.between(&d);
+                if !self.warned_offsets && (diff.x.hypot(diff.y) > 0.01 || diff.theta.abs() > 0.01)
+                {
+                    self.warned_offsets = true;
+                    let msg = format!(
+                        "laser offset: PARAM gives ({:.3}, {:.3}, {:.3}) but the first scan line's \
+                         poses give ({:.3}, {:.3}, {:.3}); using the PARAM",
+                        p.x, p.y, p.theta, d.x, d.y, d.theta
+                    );
+                    log::warn!("{msg}");
+                    stats.warnings.push(msg);
+                }
+            }
+            (p, "PARAM")
+        } else if let Some(d) = derived {
+            (d, "laser line")
+        } else {
+            (Se2::IDENTITY, "identity")
+        };
+        self.offset = Some(offset);
+        stats.laser_offset = Some(offset);
+        stats.laser_offset_source = Some(from.into());
+        offset
+    }
+
+    fn refresh(&self, stats: &mut InputStats) {
+        let r = self.reader.stats();
+        stats.bytes_read = r.bytes;
+        stats.skipped = self.ignored + r.damaged + r.unknown.values().sum::<u64>();
+        if stats.warnings.len() < r.warnings.len() {
+            // The reader only ever appends.
+            let start = stats.warnings.len().min(r.warnings.len());
+            stats.warnings.extend_from_slice(&r.warnings[start..]);
+        }
+    }
+}
+
+impl EventSource for CarmenSource {
+    fn next_event(&mut self, stats: &mut InputStats) -> Option<Result<SensorEvent>> {
+        loop {
+            if let Some(e) = self.pending.pop_front() {
+                return Some(Ok(e));
+            }
+            let record = self.reader.next();
+            self.refresh(stats);
+            let record = match record? {
+                Ok(r) => r,
+                Err(e) => return Some(Err(e)),
+            };
+            match record {
+                CarmenRecord::Param { name, value } => self.param(&name, &value),
+                CarmenRecord::Odom(o) => {
+                    self.odom_since_scan = true;
+                    return Some(Ok(SensorEvent::Odometry {
+                        t_ns: o.stamp_ns,
+                        pose: pose_of(o.pose),
+                    }));
+                }
+                CarmenRecord::Laser(laser) => {
+                    if !self.wanted(laser.source) {
+                        self.ignored += 1;
+                        continue;
+                    }
+                    let laser_offset = self.offset(&laser, stats);
+                    let odom = laser.odom_pose.map(pose_of);
+                    if let (Some(pose), false) = (odom, self.odom_since_scan) {
+                        stats.odometry_from_scans += 1;
+                        self.pending.push_back(SensorEvent::Odometry {
+                            t_ns: laser.stamp_ns,
+                            pose,
+                        });
+                    }
+                    self.odom_since_scan = false;
+                    let range_max = self
+                        .range_max_override
+                        .or(laser.max_range)
+                        .or(self.front_laser_max)
+                        .unwrap_or(DEFAULT_RANGE_MAX);
+                    self.pending.push_back(SensorEvent::Scan(ScanEvent {
+                        t_ns: laser.stamp_ns,
+                        ranges: laser.ranges,
+                        angle_min: laser.angle_min,
+                        angle_increment: laser.angle_increment,
+                        range_min: 0.0,
+                        range_max,
+                        laser_offset,
+                        odom,
+                    }));
+                }
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// ROS 2 bags
+
+struct BagSource {
+    reader: BagReader,
+    offset_override: Option<Se2>,
+    range_max_override: Option<f32>,
+    base_frame: Option<String>,
+    /// Static transforms: child frame -> (parent frame, pose of the child in the parent).
+    statics: HashMap<String, (String, Se2)>,
+    /// Mounting per scan frame, found at the frame's first scan.
+    offsets: HashMap<String, Se2>,
+    /// Chosen topic per kind: scan, odometry, IMU.
+    topics: [Option<Arc<str>>; 3],
+    ignored: u64,
+}
+
+impl BagSource {
+    fn new(reader: BagReader, opts: &InputOptions) -> Self {
+        Self {
+            reader,
+            offset_override: opts.laser_offset,
+            range_max_override: opts.range_max,
+            base_frame: opts.base_frame.clone(),
+            statics: HashMap::new(),
+            offsets: HashMap::new(),
+            topics: [None, None, None],
+            ignored: 0,
+        }
+    }
+
+    /// Whether `topic` is the chosen topic of `kind` (locking onto the first one seen).
+    fn chosen(&mut self, kind: usize, topic: &Arc<str>) -> bool {
+        match &self.topics[kind] {
+            Some(t) => t == topic,
+            None => {
+                self.topics[kind] = Some(Arc::clone(topic));
+                true
+            }
+        }
+    }
+
+    fn add_statics(&mut self, msg: &TfMessage) {
+        for t in &msg.transforms {
+            let tr = &t.transform;
+            let pose = Se2::new(tr.translation.x, tr.translation.y, tr.rotation.yaw());
+            self.statics.insert(
+                strip(&t.child_frame_id).to_owned(),
+                (strip(&t.header.frame_id).to_owned(), pose),
+            );
+        }
+    }
+
+    /// The pose of `frame` in the robot frame through the static transforms.
+    fn chain(&self, frame: &str, base: &str) -> Option<Se2> {
+        let mut pose = Se2::IDENTITY;
+        let mut at = frame;
+        for _ in 0..32 {
+            if at == base {
+                return Some(pose);
+            }
+            let (parent, p) = self.statics.get(at)?;
+            pose = p.compose(&pose);
+            at = parent;
+        }
+        None
+    }
+
+    fn scan_offset(&mut self, scan: &LaserScan, stats: &mut InputStats) -> Se2 {
+        if let Some(o) = self.offset_override {
+            if stats.laser_offset.is_none() {
+                stats.laser_offset = Some(o);
+                stats.laser_offset_source = Some("option".into());
+            }
+            return o;
+        }
+        let frame = strip(&scan.header.frame_id);
+        if let Some(o) = self.offsets.get(frame) {
+            return *o;
+        }
+        let base = self.base_frame.as_deref().unwrap_or("base_link").to_owned();
+        let (offset, from) = match self.chain(frame, &base) {
+            Some(o) => (o, "tf_static"),
+            None => {
+                let msg = format!(
+                    "no static transform from {base:?} to the scan frame {frame:?}; the laser \
+                     is taken to sit at the robot's origin"
+                );
+                log::warn!("{msg}");
+                stats.warnings.push(msg);
+                (Se2::IDENTITY, "identity")
+            }
+        };
+        self.offsets.insert(frame.to_owned(), offset);
+        if stats.laser_offset.is_none() {
+            stats.laser_offset = Some(offset);
+            stats.laser_offset_source = Some(from.into());
+        }
+        offset
+    }
+
+    fn refresh(&self, stats: &mut InputStats) {
+        let r = self.reader.stats();
+        stats.bytes_read = r.bytes_read;
+        stats.skipped = self.ignored + r.undecodable + r.foreign_encoding + r.unknown_channel;
+        if stats.warnings.len() < r.warnings.len() {
+            let start = stats.warnings.len().min(r.warnings.len());
+            stats.warnings.extend_from_slice(&r.warnings[start..]);
+        }
+    }
+}
+
+/// A frame name without a leading `/` (ROS 1 habit).
+fn strip(frame: &str) -> &str {
+    frame.trim_start_matches('/')
+}
+
+impl EventSource for BagSource {
+    fn next_event(&mut self, stats: &mut InputStats) -> Option<Result<SensorEvent>> {
+        loop {
+            let item = self.reader.next();
+            self.refresh(stats);
+            let message = match item? {
+                Ok(m) => m,
+                Err(e) => return Some(Err(e)),
+            };
+            match message.msg {
+                SensorMsg::Tf {
+                    msg,
+                    is_static: true,
+                } => self.add_statics(&msg),
+                SensorMsg::Scan(scan) if self.chosen(0, &message.topic) => {
+                    let laser_offset = self.scan_offset(&scan, stats);
+                    return Some(Ok(SensorEvent::Scan(ScanEvent {
+                        t_ns: scan.header.stamp.to_nanos(),
+                        laser_offset,
+                        angle_min: scan.angle_min,
+                        angle_increment: scan.angle_increment,
+                        range_min: scan.range_min,
+                        range_max: self.range_max_override.unwrap_or(scan.range_max),
+                        ranges: scan.ranges,
+                        odom: None,
+                    })));
+                }
+                SensorMsg::Odom(odom) if self.chosen(1, &message.topic) => {
+                    if self.base_frame.is_none() && !odom.child_frame_id.is_empty() {
+                        self.base_frame = Some(strip(&odom.child_frame_id).to_owned());
+                    }
+                    let (x, y, theta) = odom.pose.pose.to_planar();
+                    return Some(Ok(SensorEvent::Odometry {
+                        t_ns: odom.header.stamp.to_nanos(),
+                        pose: Se2::new(x, y, theta),
+                    }));
+                }
+                SensorMsg::Imu(imu) if self.chosen(2, &message.topic) => {
+                    return Some(Ok(SensorEvent::Gyro {
+                        t_ns: imu.header.stamp.to_nanos(),
+                        yaw_rate: imu.angular_velocity.z,
+                    }));
+                }
+                _ => self.ignored += 1,
+            }
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// Simulator
+
+/// Events in flight between the simulation thread and the stream.
+const SIM_CHANNEL: usize = 256;
+
+fn sim_ns(t: f64) -> i64 {
+    EPOCH_NS + (t * 1e9).round() as i64
+}
+
+/// Sends the mapper's samples into a bounded channel.
+struct ChannelSink {
+    tx: SyncSender<Result<SensorEvent>>,
+    laser_offset: Se2,
+}
+
+/// The receiving end has gone: the simulation stops quietly.
+#[derive(Debug)]
+struct ReceiverGone;
+
+impl std::fmt::Display for ReceiverGone {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("the event stream was dropped")
+    }
+}
+
+impl std::error::Error for ReceiverGone {}
+
+impl SampleSink for ChannelSink {
+    fn accept(&mut self, s: &Sample) -> Result<()> {
+        let t_ns = sim_ns(s.stamp);
+        let event = match &s.payload {
+            Payload::Odometry(o) => SensorEvent::Odometry { t_ns, pose: o.pose },
+            Payload::Imu(i) => SensorEvent::Gyro {
+                t_ns,
+                yaw_rate: i.yaw_rate,
+            },
+            Payload::Scan(scan) => SensorEvent::Scan(ScanEvent {
+                t_ns,
+                ranges: scan.ranges.clone(),
+                angle_min: scan.angle_min,
+                angle_increment: scan.angle_increment,
+                range_min: scan.range_min,
+                range_max: scan.range_max,
+                laser_offset: self.laser_offset,
+                odom: None,
+            }),
+            Payload::GroundTruth(_) | Payload::Image(..) | Payload::Fault(_) => return Ok(()),
+        };
+        self.tx
+            .send(Ok(event))
+            .map_err(|_| anyhow::Error::new(ReceiverGone))
+    }
+}
+
+struct SimSource {
+    rx: Receiver<Result<SensorEvent>>,
+    thread: Option<JoinHandle<Result<()>>>,
+}
+
+impl EventSource for SimSource {
+    fn next_event(&mut self, _stats: &mut InputStats) -> Option<Result<SensorEvent>> {
+        if let Ok(item) = self.rx.recv() {
+            return Some(item);
+        }
+        // The simulation ended: report its failure, if any.
+        let thread = self.thread.take()?;
+        match thread.join() {
+            Ok(Ok(())) => None,
+            Ok(Err(e)) => Some(Err(e)),
+            Err(_) => Some(Err(anyhow::anyhow!("the simulation thread panicked"))),
+        }
+    }
+}
+
+/// The simulated robot of `cloi sim --world WORLD --duration DURATION --seed SEED --sensors
+/// L` (the world's fault schedule included) as a stream of events: wheel odometry, gyro and
+/// LiDAR, stamped with [`EPOCH_NS`] plus the simulated header stamp, in order of arrival.
+///
+/// `world` is `home`, `office`, `airport` or a TOML world file. The simulation runs on a
+/// background thread and waits when the consumer falls behind (a channel of 256 events);
+/// dropping the stream stops it.
+///
+/// # Errors
+/// Unknown world, an invalid world file or a bad duration.
+pub fn sim_input(world: &str, duration: f64, seed: u64) -> Result<InputStream> {
+    sim_input_with(
+        world,
+        SimConfig {
+            duration,
+            seed,
+            sensors: SensorSet::Lidar,
+            ..SimConfig::default()
+        },
+    )
+}
+
+/// [`sim_input`] with a full simulator configuration (its sensor set must include the LiDAR).
+///
+/// # Errors
+/// See [`sim_input`].
+pub fn sim_input_with(world: &str, cfg: SimConfig) -> Result<InputStream> {
+    if !(cfg.duration > 0.0 && cfg.duration.is_finite()) {
+        bail!("the simulated duration must be a positive number of seconds");
+    }
+    if !cfg.sensors.has_lidar() {
+        bail!("the mapper needs the simulated LiDAR (sensor set L or C+L)");
+    }
+    let file = crate::sim::command::load_world(world, cfg.duration)?;
+    let sim = Simulation::new(World::from_file(&file), cfg);
+    let laser_offset = sim
+        .rig
+        .lidar
+        .as_ref()
+        .map_or(Se2::IDENTITY, |l| Se2::new(l.mount_x, 0.0, 0.0));
+    let (tx, rx) = std::sync::mpsc::sync_channel(SIM_CHANNEL);
+    let thread = std::thread::Builder::new()
+        .name("cloi-sim".into())
+        .spawn(move || {
+            let mut sink = ChannelSink { tx, laser_offset };
+            match sim.run(&mut sink) {
+                Ok(_) => Ok(()),
+                Err(e) if e.is::<ReceiverGone>() => Ok(()),
+                Err(e) => Err(e),
+            }
+        })
+        .context("starting the simulation thread")?;
+    let stream = InputStream::new(
+        Box::new(SimSource {
+            rx,
+            thread: Some(thread),
+        }),
+        InputSize::Seconds(cfg.duration),
+    );
+    {
+        let mut stats = lock(&stream.stats);
+        stats.laser_offset = Some(laser_offset);
+        stats.laser_offset_source = Some("simulator".into());
+    }
+    Ok(stream)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::io::bag::BagWriter;
+    use crate::io::carmen::reader_from_bytes;
+    use crate::io::ros2::{Header, Imu, Odometry, Pose, Time, Transform, TransformStamped};
+
+    fn collect(stream: &mut InputStream) -> Vec<SensorEvent> {
+        stream.by_ref().map(|e| e.expect("event")).collect()
+    }
+
+    fn scan_of(e: &SensorEvent) -> &ScanEvent {
+        match e {
+            SensorEvent::Scan(s) => s,
+            other => panic!("expected a scan, got {other:?}"),
+        }
+    }
+
+    /// A front laser 0.12 m ahead (PARAM), a rear laser, a stamp stepping back, a NaN
+    /// range, a damaged line, a scan without an ODOM line before it.
+    const LOG: &str = "# CARMEN Logfile\n\
+PARAM robot_frontlaser_offset 0.12 nohost 0\n\
+PARAM robot_front_laser_max 50.0 nohost 0\n\
+ODOM 1.0 2.0 0.0 0.3 0.1 0.0 100.000000 host 0\n\
+FLASER 3 1.0 nan 81.83 1.12 2.0 0.0 1.0 2.0 0.0 100.050000 host 0\n\
+RLASER 3 1.0 2.0 3.0 0.9 2.0 3.1416 1.0 2.0 0.0 100.060000 host 0\n\
+ODOM 1.1 2.0 0.0 0.3 0.1 0.0 100.100000 host 0\n\
+ODOM 1.05 2.0 0.0 0.3 0.1 0.0 100.090000 host 0\n\
+FLASER 3 1.0 2.0 3.0 1.32 2.0 0.0 1.2 2.0 0.0 100.150000 host 0\n\
+FLASER 3 1.0 2.0 zz 1.32 2.0 0.0 1.2 2.0 0.0 100.170000 host 0\n\
+FLASER 3 1.0 2.0 3.0 1.42 2.0 0.0 1.3 2.0 0.0 100.140000 host 0\n";
+
+    #[test]
+    fn carmen_log_becomes_events() {
+        let reader = reader_from_bytes(LOG.into(), "t.clf", false);
+        let mut stream = carmen_input(reader, &InputOptions::default());
+        let handle = stream.stats_handle();
+        let events = collect(&mut stream);
+        let kinds: Vec<&str> = events
+            .iter()
+            .map(|e| match e {
+                SensorEvent::Odometry { .. } => "odom",
+                SensorEvent::Gyro { .. } => "gyro",
+                SensorEvent::Scan(_) => "scan",
+            })
+            .collect();
+        // The last scan has no ODOM line since the previous scan: its own odometry comes first.
+        assert_eq!(
+            kinds,
+            ["odom", "scan", "odom", "odom", "scan", "odom", "scan"]
+        );
+        let first = scan_of(&events[1]);
+        assert_eq!(first.t_ns, 100_050_000_000);
+        assert_eq!(first.ranges.len(), 3);
+        assert!(first.ranges[1].is_nan(), "NaN passes through");
+        assert_eq!(first.ranges[2], 81.83);
+        assert_eq!(first.range_max, 50.0);
+        assert_eq!(first.range_min, 0.0);
+        assert!((first.angle_min + std::f32::consts::FRAC_PI_2).abs() < 1e-6);
+        assert_eq!(first.laser_offset, Se2::new(0.12, 0.0, 0.0));
+        assert_eq!(first.odom, Some(Se2::new(1.0, 2.0, 0.0)));
+        assert_eq!(
+            events[5],
+            SensorEvent::Odometry {
+                t_ns: 100_140_000_000,
+                pose: Se2::new(1.3, 2.0, 0.0)
+            }
+        );
+        let stats = stream.stats();
+        assert_eq!(*handle.lock().unwrap(), stats);
+        assert_eq!(stats.scans, 3);
+        assert_eq!(stats.odometry, 4);
+        assert_eq!(stats.odometry_from_scans, 1);
+        assert_eq!(stats.gyro, 0);
+        // ODOM 100.09 after 100.10, and the last scan 100.14 after 100.15.
+        assert_eq!(stats.backwards_stamps, 2);
+        // The rear laser and the damaged line.
+        assert_eq!(stats.skipped, 2);
+        assert_eq!(stats.first_ns, Some(100_000_000_000));
+        assert_eq!(stats.last_ns, Some(100_150_000_000));
+        assert!((stats.data_seconds() - 0.15).abs() < 1e-9);
+        assert_eq!(stats.laser_offset_source.as_deref(), Some("PARAM"));
+        assert_eq!(stats.bytes_read, LOG.len() as u64);
+        assert!(stats.warnings.iter().any(|w| w.contains("t.clf:10")));
+    }
+
+    #[test]
+    fn carmen_laser_choice_and_derived_offset() {
+        // No PARAM: the offset comes from the first line's laser and odometry poses.
+        let log =
+            "FLASER 2 1.0 2.0 -2.994295 8.292039 -3.120965 -3.034287 8.291214 -3.120965 5.0 h 0\n\
+RLASER 2 3.0 4.0 1.0 2.0 3.14159 1.0 2.0 0.0 5.1 h 0\n";
+        let mut stream = carmen_input(
+            reader_from_bytes(log.into(), "a.clf", true),
+            &InputOptions::default(),
+        );
+        let events = collect(&mut stream);
+        let scan = scan_of(&events[1]);
+        assert!(
+            (scan.laser_offset.x + 0.04).abs() < 1e-5,
+            "{:?}",
+            scan.laser_offset
+        );
+        assert!(scan.laser_offset.y.abs() < 1e-5 && scan.laser_offset.theta.abs() < 1e-9);
+        assert_eq!(scan.range_max, DEFAULT_RANGE_MAX);
+        assert_eq!(
+            stream.stats().laser_offset_source.as_deref(),
+            Some("laser line")
+        );
+
+        // The rear laser on request, with an explicit range limit.
+        let opts = InputOptions {
+            laser: "rear".parse().unwrap(),
+            range_max: Some(20.0),
+            ..InputOptions::default()
+        };
+        let events = collect(&mut carmen_input(
+            reader_from_bytes(log.into(), "a.clf", true),
+            &opts,
+        ));
+        assert_eq!(events.len(), 2);
+        let scan = scan_of(&events[1]);
+        assert_eq!(scan.ranges, vec![3.0, 4.0]);
+        assert_eq!(scan.range_max, 20.0);
+        assert!((scan.laser_offset.theta.abs() - std::f64::consts::PI).abs() < 1e-4);
+
+        // An explicit offset wins over everything.
+        let opts = InputOptions {
+            laser_offset: Some(Se2::new(0.3, 0.0, 0.0)),
+            ..InputOptions::default()
+        };
+        let events = collect(&mut carmen_input(
+            reader_from_bytes(log.into(), "a.clf", true),
+            &opts,
+        ));
+        assert_eq!(scan_of(&events[1]).laser_offset, Se2::new(0.3, 0.0, 0.0));
+        assert!("sideways".parse::<LaserChoice>().is_err());
+    }
+
+    #[test]
+    fn compressed_carmen_file_is_opened_by_content() {
+        use std::io::Write;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("log.clf.gz");
+        let mut gz = flate2::write::GzEncoder::new(
+            File::create(&path).unwrap(),
+            flate2::Compression::fast(),
+        );
+        gz.write_all(LOG.as_bytes()).unwrap();
+        gz.finish().unwrap();
+        let mut stream = open_input(&path, &InputOptions::default()).unwrap();
+        assert_eq!(stream.size(), InputSize::Unknown);
+        assert_eq!(collect(&mut stream).len(), 7);
+        // In strict mode the damaged line is an error, after the events before it.
+        let strict = InputOptions {
+            strict: true,
+            ..InputOptions::default()
+        };
+        let items: Vec<_> = open_input(&path, &strict).unwrap().collect();
+        assert_eq!(items.len(), 6);
+        assert!(items[5].is_err());
+    }
+
+    fn write_bag(path: &Path) {
+        let mut bag = BagWriter::create(path).unwrap();
+        let t0 = 1_700_000_000_000_000_000i64;
+        let tf = TfMessage {
+            transforms: vec![
+                TransformStamped {
+                    header: Header::new(Time::from_nanos(t0), "base_link"),
+                    child_frame_id: "laser_mount".into(),
+                    transform: Transform::planar(0.2, 0.0, 0.0),
+                },
+                TransformStamped {
+                    header: Header::new(Time::from_nanos(t0), "laser_mount"),
+                    child_frame_id: "laser".into(),
+                    transform: Transform::planar(0.0, 0.1, std::f64::consts::FRAC_PI_2),
+                },
+            ],
+        };
+        bag.write("/tf_static", t0, &tf).unwrap();
+        for k in 0..3i64 {
+            let t = t0 + k * 100_000_000;
+            let mut odom = Odometry {
+                header: Header::new(Time::from_nanos(t), "odom"),
+                child_frame_id: "base_link".into(),
+                ..Default::default()
+            };
+            odom.pose.pose = Pose::planar(0.1 * k as f64, 0.0, 0.0);
+            bag.write("/odom", t, &odom).unwrap();
+            let mut imu = Imu {
+                header: Header::new(Time::from_nanos(t + 1_000), "imu"),
+                ..Default::default()
+            };
+            imu.angular_velocity.z = 0.5;
+            bag.write("/imu", t + 1_000, &imu).unwrap();
+            // The second scan's header stamp lies before the first's.
+            let stamp = if k == 1 { t0 - 5_000_000 } else { t + 2_000 };
+            let scan = LaserScan {
+                header: Header::new(Time::from_nanos(stamp), "laser"),
+                angle_min: -1.0,
+                angle_max: 1.0,
+                angle_increment: 1.0,
+                range_min: 0.05,
+                range_max: 12.0,
+                ranges: vec![1.0, f32::NAN, 3.0],
+                ..Default::default()
+            };
+            bag.write("/scan", t + 2_000, &scan).unwrap();
+            bag.write("/scan_rear", t + 3_000, &scan).unwrap();
+        }
+        bag.finish().unwrap();
+    }
+
+    #[test]
+    fn bag_becomes_events_with_the_static_mounting() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.mcap");
+        write_bag(&path);
+        // A bag directory resolves to its one MCAP file.
+        let mut stream = open_input(dir.path(), &InputOptions::default()).unwrap();
+        assert!(matches!(stream.size(), InputSize::Bytes(n) if n > 0));
+        let events = collect(&mut stream);
+        let stats = stream.stats();
+        assert_eq!((stats.scans, stats.odometry, stats.gyro), (3, 3, 3));
+        // /scan_rear (3 messages) and the TF message are not events.
+        assert_eq!(stats.skipped, 3);
+        assert_eq!(stats.backwards_stamps, 1);
+        assert_eq!(stats.laser_offset_source.as_deref(), Some("tf_static"));
+        let scans: Vec<&ScanEvent> = events
+            .iter()
+            .filter_map(|e| match e {
+                SensorEvent::Scan(s) => Some(s),
+                _ => None,
+            })
+            .collect();
+        let o = scans[0].laser_offset;
+        assert!((o.x - 0.2).abs() < 1e-12 && (o.y - 0.1).abs() < 1e-12);
+        assert!((o.theta - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+        assert_eq!(scans[0].range_max, 12.0);
+        assert_eq!(scans[0].range_min, 0.05);
+        assert!(scans[0].ranges[1].is_nan());
+        assert_eq!(scans[1].t_ns, 1_700_000_000_000_000_000 - 5_000_000);
+        assert!(events.iter().any(|e| matches!(
+            e,
+            SensorEvent::Gyro { yaw_rate, .. } if *yaw_rate == 0.5
+        )));
+        assert!(events.iter().any(|e| matches!(
+            e,
+            SensorEvent::Odometry { pose, .. } if (pose.x - 0.2).abs() < 1e-12
+        )));
+
+        // Choosing the other scan topic; an explicit offset.
+        let opts = InputOptions {
+            topics: TopicSelection {
+                scan: Some("/scan_rear".into()),
+                ..TopicSelection::default()
+            },
+            laser_offset: Some(Se2::new(-0.3, 0.0, std::f64::consts::PI)),
+            range_max: Some(8.0),
+            ..InputOptions::default()
+        };
+        let mut stream = open_input(&path, &opts).unwrap();
+        let events = collect(&mut stream);
+        let scan = events
+            .iter()
+            .find_map(|e| match e {
+                SensorEvent::Scan(s) => Some(s),
+                _ => None,
+            })
+            .unwrap();
+        assert_eq!(scan.laser_offset.x, -0.3);
+        assert_eq!(scan.range_max, 8.0);
+        assert_eq!(stream.stats().scans, 3);
+        assert_eq!(
+            stream.stats().laser_offset_source.as_deref(),
+            Some("option")
+        );
+    }
+
+    #[test]
+    fn bag_without_static_transform_uses_the_identity() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("b.mcap");
+        let mut bag = BagWriter::create(&path).unwrap();
+        let scan = LaserScan {
+            header: Header::new(Time::from_nanos(5), "laser"),
+            angle_increment: 0.1,
+            range_max: 5.0,
+            ranges: vec![1.0; 4],
+            ..Default::default()
+        };
+        bag.write("/scan", 5, &scan).unwrap();
+        bag.finish().unwrap();
+        let mut stream = open_input(&path, &InputOptions::default()).unwrap();
+        let events = collect(&mut stream);
+        assert_eq!(scan_of(&events[0]).laser_offset, Se2::IDENTITY);
+        let stats = stream.stats();
+        assert_eq!(stats.laser_offset_source.as_deref(), Some("identity"));
+        assert!(stats.warnings[0].contains("no static transform"));
+    }
+
+    #[test]
+    fn simulated_home_streams_odometry_gyro_and_scans() {
+        let run = || {
+            let mut stream = sim_input("home", 1.0, 7).unwrap();
+            let events = collect(&mut stream);
+            (events, stream.stats())
+        };
+        let (events, stats) = run();
+        // 5 Hz LiDAR, 50 Hz odometry, 20 Hz gyro over one second.
+        assert!((4..=5).contains(&stats.scans), "{stats:?}");
+        assert!(stats.odometry >= 45 && stats.gyro >= 18, "{stats:?}");
+        assert_eq!(stats.laser_offset_source.as_deref(), Some("simulator"));
+        let first_scan = events
+            .iter()
+            .find_map(|e| match e {
+                SensorEvent::Scan(s) => Some(s),
+                _ => None,
+            })
+            .unwrap();
+        assert_eq!(first_scan.ranges.len(), 360);
+        // The cleaning robot's LiDAR sits on its centre line, facing forward.
+        assert_eq!(Some(first_scan.laser_offset), stats.laser_offset);
+        assert!(first_scan.laser_offset.y == 0.0 && first_scan.laser_offset.theta == 0.0);
+        assert!(first_scan.range_max > first_scan.range_min);
+        assert!(first_scan.t_ns >= EPOCH_NS && first_scan.t_ns < EPOCH_NS + 1_000_000_000);
+        assert!(matches!(
+            events[0],
+            SensorEvent::Odometry { .. } | SensorEvent::Gyro { .. }
+        ));
+        // The same seed gives the same stream.
+        let (again, _) = run();
+        assert_eq!(events.len(), again.len());
+        assert!(events
+            .iter()
+            .zip(&again)
+            .all(|(a, b)| format!("{a:?}") == format!("{b:?}")));
+        // Dropping the stream early stops the simulation.
+        let mut stream = sim_input("home", 30.0, 1).unwrap();
+        assert!(stream.next().unwrap().is_ok());
+        drop(stream);
+        assert!(sim_input("moon", 1.0, 0).is_err());
+        assert!(sim_input("home", -1.0, 0).is_err());
+    }
+}

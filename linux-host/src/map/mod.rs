@@ -1,0 +1,16 @@
+//! `cloi map`: the host layer around the core mapper.
+//!
+//! * [`input`], CARMEN logs, ROS 2 bags and the simulator as one stream of sensor events;
+//! * [`config`], the TOML configuration with the `home`, `office` and `airport` presets;
+//! * [`output`], trajectories, the run report, the global grid from submaps, peak heap and
+//!   the progress bar.
+
+pub mod config;
+pub mod input;
+pub mod output;
+
+pub use config::MapConfig;
+pub use input::{
+    open_input, sim_input, InputOptions, InputStats, InputStream, ScanEvent, SensorEvent,
+};
+pub use output::{compose_global_grid, write_tum, MapReport, OwnedGrid, SubmapView};
