@@ -31,6 +31,9 @@ pub enum Command {
     /// Evaluate trajectories: relations, ATE, RPE, GMapping reference poses.
     #[command(subcommand)]
     Eval(crate::eval::cli::EvalCommand),
+    /// Build a map from a CARMEN log, a ROS 2 bag, or (without input) the simulated home:
+    /// map.pgm/yaml/png, trajectory.tum, gpe.tum, graph.g2o and report.json.
+    Map(crate::map::command::MapArgs),
     /// Simulate a robot in a world and write a ROS 2 bag with exact ground truth.
     Sim(crate::sim::command::SimArgs),
 }
@@ -48,5 +51,6 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Convert(args) => crate::io::cli::run(&args, out),
         Command::Eval(cmd) => crate::eval::cli::run(&cmd, out),
         Command::Sim(args) => crate::sim::command::run(&args, out),
+        Command::Map(args) => crate::map::command::run_command(&args, out),
     }
 }

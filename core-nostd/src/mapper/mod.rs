@@ -821,6 +821,12 @@ impl<'r> Mapper<'r> {
         }
     }
 
+    /// Asks for an optimization at the next back-end step even without new loop closures (e.g.
+    /// to settle the map at the end of a run).
+    pub fn request_optimization(&mut self) {
+        self.st.pending_loop = true;
+    }
+
     /// Runs one back-end step of at most `iterations` Gauss-Newton iterations.
     pub fn step_backend(&mut self, iterations: u32) -> BackendStep {
         if !self.st.optimizing {

@@ -201,14 +201,14 @@ impl MapConfig {
                 search_window_xy: 1.5,
                 search_window_theta: 0.5,
                 min_score: 0.55,
-                max_candidates: 4,
+                max_candidates: 2,
                 // chi-square, 3 degrees of freedom, 99 %.
                 mahalanobis_gate: 11.34,
             },
             gpe: GpeSection { deadline_us: 5_000 },
             backend: BackendSection {
-                optimize_every_keyframes: 10,
-                iterations: 10,
+                optimize_every_keyframes: 50,
+                iterations: 20,
                 prune_cell_size: 0.5,
             },
             run: RunSection {
@@ -220,16 +220,16 @@ impl MapConfig {
             Profile::Home => home,
             Profile::Office => MapConfig {
                 preprocess: PreprocessSection {
-                    range_max: 30.0,
+                    range_max: 40.0,
                     ..home.preprocess
                 },
                 submaps: SubmapSection {
                     resolution: 0.05,
                     side: 200,
-                    new_submap_distance: 4.0,
+                    new_submap_distance: 3.0,
                 },
                 loop_closure: LoopClosureSection {
-                    search_window_xy: 3.0,
+                    search_window_xy: 4.0,
                     search_window_theta: 0.6,
                     ..home.loop_closure
                 },
@@ -237,7 +237,7 @@ impl MapConfig {
             },
             Profile::Airport => MapConfig {
                 preprocess: PreprocessSection {
-                    range_max: 30.0,
+                    range_max: 40.0,
                     voxel_size: 0.1,
                     ..home.preprocess
                 },
@@ -248,7 +248,7 @@ impl MapConfig {
                 submaps: SubmapSection {
                     resolution: 0.1,
                     side: 100,
-                    new_submap_distance: 4.0,
+                    new_submap_distance: 3.0,
                 },
                 loop_closure: LoopClosureSection {
                     search_window_xy: 4.0,

@@ -2,12 +2,16 @@
 //!
 //! * [`input`], CARMEN logs, ROS 2 bags and the simulator as one stream of sensor events;
 //! * [`config`], the TOML configuration with the `home`, `office` and `airport` presets;
+//! * [`run`], the driver of the core mapper and the writer of every output;
+//! * [`command`], the `cloi map` arguments;
 //! * [`output`], trajectories, the run report, the global grid from submaps, peak heap and
 //!   the progress bar.
 
+pub mod command;
 pub mod config;
 pub mod input;
 pub mod output;
+pub mod run;
 
 pub use config::MapConfig;
 pub use input::{

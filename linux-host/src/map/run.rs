@@ -1,0 +1,562 @@
+//! `cloi map`: drives the core [`Mapper`] over an input stream and writes the results.
+//!
+//! Two schedules:
+//! * **deterministic** (`--deterministic`): one thread; after every scan the back-end gets a
+//!   fixed budget of Gauss-Newton iterations (or, with `--backend-delay S`, runs only once per
+//!   `S` seconds of data, to completion). The same input gives bit-identical outputs.
+//! * **threaded** (default): the real-time part (front-end and GPE) on the calling thread and the
+//!   back-end on a second thread that takes one iteration at a time under the mapper's lock and
+//!   yields between steps. A frame whose lock wait plus processing exceeds the GPE deadline is
+//!   given the worst-case prediction on the next frame.
+//!
+//! Every accepted scan's final pose is its reference keyframe's optimized pose composed with the
+//! front-end motion since that keyframe, so `trajectory.tum` has one pose per accepted scan with
+//! the scan's own time stamp.
+
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context, Result};
+use cloi_core::frontend::{BeamGeometry, GridParams, IcpConfig, KeyframeConfig};
+use cloi_core::geom::Se2;
+use cloi_core::graph::EdgeKind;
+use cloi_core::mapper::{
+    BackendStep, FrameOutput, Mapper, MapperConfig, MapperError, MapperStats, ScanInput,
+};
+use cloi_core::profile::{AirportResources, HomeResources, MapperResources, OfficeResources};
+use serde_json::json;
+
+use super::config::{MapConfig, Profile};
+use super::input::{InputStats, InputStream, SensorEvent};
+use super::output::{
+    compose_global_grid, peak_heap_bytes, write_tum, MapProgress, MapReport, SubmapView,
+};
+use crate::io::map_out::{write_map_png, write_map_server};
+
+/// Settings of one `cloi map` run.
+#[derive(Debug, Clone)]
+pub struct MapSettings {
+    /// Memory profile (fixes the resources and the submap grid).
+    pub profile: Profile,
+    /// The host configuration (preset plus overrides).
+    pub config: MapConfig,
+    /// Output directory.
+    pub out: PathBuf,
+    /// Interleave the back-end with fixed budgets on one thread.
+    pub deterministic: bool,
+    /// Run the back-end only once per this many seconds of data (0: after every scan).
+    pub backend_delay_s: f64,
+    /// Back-end iterations per scan in the deterministic schedule.
+    pub backend_iterations_per_scan: u32,
+    /// Stop after this many scans.
+    pub max_scans: Option<u64>,
+    /// Show a progress bar (when stderr is a terminal).
+    pub progress: bool,
+}
+
+/// What a run produced, besides the files.
+#[derive(Debug, Clone)]
+pub struct MapRun {
+    /// The report written to `report.json`.
+    pub report: MapReport,
+    /// The final pose of every accepted scan.
+    pub trajectory: Vec<(i64, Se2)>,
+    /// The real-time pose of every accepted scan.
+    pub gpe: Vec<(i64, Se2)>,
+    /// The mapper's counters.
+    pub stats: MapperStats,
+}
+
+/// The core configuration for a profile and a host configuration.
+pub fn mapper_config(profile: Profile, c: &MapConfig) -> MapperConfig {
+    let base = match profile {
+        Profile::Home => MapperConfig::home(),
+        Profile::Office | Profile::Airport => MapperConfig::default(),
+    };
+    MapperConfig {
+        preprocess: cloi_core::frontend::PreprocessConfig {
+            voxel_size: c.preprocess.voxel_size,
+            decimation: c.preprocess.decimation,
+            ..base.preprocess
+        },
+        max_range: c.preprocess.range_max,
+        icp: IcpConfig {
+            max_iterations: c.icp.max_iterations,
+            max_correspondence: c.icp.max_correspondence,
+            huber: c.icp.huber,
+            min_points: c.icp.min_points,
+            ..base.icp
+        },
+        keyframe: KeyframeConfig {
+            distance: c.keyframes.distance,
+            angle: c.keyframes.angle,
+        },
+        grid: GridParams {
+            side: c.submaps.side,
+            resolution: c.submaps.resolution,
+            ..base.grid
+        },
+        submap_length: c.submaps.new_submap_distance,
+        loops: cloi_core::mapper::LoopConfig {
+            window_max: c.loop_closure.search_window_xy,
+            angle_max: c.loop_closure.search_window_theta,
+            min_score: c.loop_closure.min_score,
+            max_candidates: c.loop_closure.max_candidates.min(u8::MAX as u16) as u8,
+            ..base.loops
+        },
+        backend: cloi_core::mapper::BackendConfig {
+            every_keyframes: c.backend.optimize_every_keyframes,
+            max_iterations: c.backend.iterations,
+            ..base.backend
+        },
+        ..base
+    }
+}
+
+/// Boxed, empty resources of `profile`. They are built on a thread with a stack large enough
+/// to hold them by value (debug builds construct them on the stack before moving them).
+fn resources(profile: Profile) -> Result<Box<dyn ResourcesDyn + Send>> {
+    let size = match profile {
+        Profile::Home => size_of::<HomeResources>(),
+        Profile::Office => size_of::<OfficeResources>(),
+        Profile::Airport => size_of::<AirportResources>(),
+    };
+    std::thread::Builder::new()
+        .name("cloi-alloc".into())
+        .stack_size(4 * size + (256 << 20))
+        .spawn(move || -> Box<dyn ResourcesDyn + Send> {
+            match profile {
+                Profile::Home => Box::<HomeResources>::default(),
+                Profile::Office => Box::<OfficeResources>::default(),
+                Profile::Airport => Box::<AirportResources>::default(),
+            }
+        })
+        .context("starting the allocation thread")?
+        .join()
+        .map_err(|_| anyhow!("allocating the resources failed"))
+}
+
+/// Object-safe access to resources of any profile.
+trait ResourcesDyn {
+    fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError>;
+}
+
+impl<const N: usize, const E: usize, const S: usize, const C: usize, const F: usize> ResourcesDyn
+    for MapperResources<N, E, S, C, F>
+{
+    fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError> {
+        MapperResources::mapper(self, config)
+    }
+}
+
+/// One accepted scan: its time, reference keyframe, front-end motion since it, and outputs.
+struct ScanRecord {
+    stamp: i64,
+    reference: u32,
+    rel: Se2,
+    gpe: Se2,
+    frontend: Se2,
+}
+
+/// State of the real-time loop shared by both schedules.
+struct Driver {
+    records: Vec<ScanRecord>,
+    first_stamp: Option<i64>,
+    last_stamp: i64,
+    rejected: u64,
+    deadline: Duration,
+    late: bool,
+    scans_carry_odometry: bool,
+    last_scan_odometry: Option<i64>,
+}
+
+impl Driver {
+    fn feed(&mut self, mapper: &mut Mapper<'_>, ev: &SensorEvent, started: Instant) {
+        match ev {
+            SensorEvent::Odometry { t_ns, pose } => {
+                if !self.scans_carry_odometry {
+                    let _ = mapper.push_odometry(*t_ns, *pose);
+                }
+            }
+            SensorEvent::Gyro { t_ns, yaw_rate } => {
+                let _ = mapper.push_gyro(*t_ns, *yaw_rate);
+            }
+            SensorEvent::Scan(s) => {
+                // CARMEN scan lines carry the odometry at the scan's own time: the most exact
+                // seed. Once they do, the separate odometry lines are not used (they are logged
+                // at other times and would only be interpolated).
+                if let Some(odom) = s.odom {
+                    if !self.scans_carry_odometry {
+                        self.scans_carry_odometry = true;
+                    }
+                    if self.last_scan_odometry != Some(s.t_ns) {
+                        let _ = mapper.push_odometry(s.t_ns, odom);
+                        self.last_scan_odometry = Some(s.t_ns);
+                    }
+                }
+                let input = ScanInput {
+                    stamp: s.t_ns,
+                    ranges: &s.ranges,
+                    geometry: BeamGeometry {
+                        angle_min: s.angle_min,
+                        angle_increment: s.angle_increment,
+                        range_min: s.range_min,
+                        range_max: s.range_max,
+                    },
+                    mounting: s.laser_offset,
+                };
+                let late = std::mem::take(&mut self.late);
+                match mapper.push_scan(&input, late) {
+                    Ok(out) => self.accept(mapper, &out),
+                    Err(_) => self.rejected += 1,
+                }
+                self.late = started.elapsed() > self.deadline;
+            }
+        }
+    }
+
+    fn accept(&mut self, mapper: &Mapper<'_>, out: &FrameOutput) {
+        let reference = mapper
+            .node_of(out.reference_serial)
+            .and_then(|i| mapper.nodes().get(i))
+            .map_or(Se2::IDENTITY, |m| m.frontend);
+        self.first_stamp.get_or_insert(out.stamp);
+        self.last_stamp = out.stamp;
+        self.records.push(ScanRecord {
+            stamp: out.stamp,
+            reference: out.reference_serial,
+            rel: reference.between(&out.frontend),
+            gpe: out.pose,
+            frontend: out.frontend,
+        });
+    }
+}
+
+/// Runs the mapper over `input` and writes every output into `settings.out`.
+///
+/// # Errors
+/// Unreadable input, an unusable configuration, or an output that cannot be written.
+pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
+    settings.config.validate()?;
+    std::fs::create_dir_all(&settings.out)
+        .with_context(|| format!("creating {}", settings.out.display()))?;
+    let cfg = mapper_config(settings.profile, &settings.config);
+    let progress = MapProgress::with_visibility(input.size(), settings.progress);
+    let stats_handle = input.stats_handle();
+    let wall = Instant::now();
+    let mut res = resources(settings.profile)?;
+    let mapper = res
+        .mapper(cfg)
+        .map_err(|e| anyhow!("profile {:?}: {e}", settings.profile))?;
+    let run = drive(mapper, input, settings, &progress)?;
+    progress.finish();
+    let wall_seconds = wall.elapsed().as_secs_f64();
+    let input_stats = stats_handle.lock().map(|s| s.clone()).unwrap_or_default();
+    finish(run, settings, wall_seconds, &input_stats)
+}
+
+/// What the mapper thread hands back.
+struct Finished {
+    records: Vec<ScanRecord>,
+    keyframe_poses: Vec<(u32, Se2)>,
+    stats: MapperStats,
+    nodes: usize,
+    edges: usize,
+    g2o: String,
+    submaps: Vec<(Se2, Vec<i8>)>,
+    grid: GridParams,
+    rejected: u64,
+    first_stamp: Option<i64>,
+    last_stamp: i64,
+}
+
+fn drive(
+    mut mapper: Mapper<'_>,
+    input: InputStream,
+    settings: &MapSettings,
+    progress: &MapProgress,
+) -> Result<Finished> {
+    let mut driver = Driver {
+        records: Vec::new(),
+        first_stamp: None,
+        last_stamp: 0,
+        rejected: 0,
+        deadline: Duration::from_micros(settings.config.gpe.deadline_us),
+        late: false,
+        scans_carry_odometry: false,
+        last_scan_odometry: None,
+    };
+    let stats_handle = input.stats_handle();
+    let max_scans = settings.max_scans.unwrap_or(u64::MAX);
+    let mut scans = 0u64;
+    let delay_ns = (settings.backend_delay_s * 1e9) as i64;
+    if settings.deterministic {
+        let mut next_backend = i64::MIN;
+        for ev in input {
+            let ev = ev?;
+            let is_scan = matches!(ev, SensorEvent::Scan(_));
+            if is_scan && scans >= max_scans {
+                break;
+            }
+            // No deadline in the deterministic schedule: timing must not change results.
+            driver.feed(&mut mapper, &ev, Instant::now());
+            driver.late = false;
+            if is_scan {
+                scans += 1;
+                if delay_ns <= 0 {
+                    mapper.step_backend(settings.backend_iterations_per_scan);
+                } else if ev.t_ns() >= next_backend {
+                    next_backend = ev.t_ns() + delay_ns;
+                    while mapper.step_backend(settings.backend_iterations_per_scan)
+                        == BackendStep::Working
+                    {}
+                }
+                if scans.is_multiple_of(200) {
+                    if let Ok(s) = stats_handle.lock() {
+                        progress.update(&s, "");
+                    }
+                }
+            }
+        }
+    } else {
+        let shared = Mutex::new(mapper);
+        let done = std::sync::atomic::AtomicBool::new(false);
+        std::thread::scope(|s| -> Result<()> {
+            let backend = s.spawn(|| {
+                let mut last_run: i64 = i64::MIN;
+                while !done.load(std::sync::atomic::Ordering::Acquire) {
+                    let idle = match shared.lock() {
+                        Ok(mut m) => {
+                            let now = m.stats().scans as i64;
+                            if delay_ns > 0 && now == last_run {
+                                true
+                            } else {
+                                last_run = now;
+                                m.step_backend(1) == BackendStep::Idle
+                            }
+                        }
+                        Err(_) => return,
+                    };
+                    if idle {
+                        std::thread::sleep(Duration::from_millis(1));
+                    } else {
+                        std::thread::yield_now();
+                    }
+                }
+            });
+            let mut result = Ok(());
+            for ev in input {
+                let ev = match ev {
+                    Ok(ev) => ev,
+                    Err(e) => {
+                        result = Err(e);
+                        break;
+                    }
+                };
+                let is_scan = matches!(ev, SensorEvent::Scan(_));
+                if is_scan && scans >= max_scans {
+                    break;
+                }
+                let started = Instant::now();
+                let Ok(mut m) = shared.lock() else {
+                    result = Err(anyhow!("the back-end thread panicked"));
+                    break;
+                };
+                driver.feed(&mut m, &ev, started);
+                drop(m);
+                if is_scan {
+                    scans += 1;
+                    if scans.is_multiple_of(200) {
+                        if let Ok(s) = stats_handle.lock() {
+                            progress.update(&s, "");
+                        }
+                    }
+                }
+            }
+            done.store(true, std::sync::atomic::Ordering::Release);
+            backend
+                .join()
+                .map_err(|_| anyhow!("the back-end thread panicked"))?;
+            result
+        })?;
+        mapper = shared
+            .into_inner()
+            .map_err(|_| anyhow!("the mapper lock was poisoned"))?;
+    }
+    // Settle the back-end: a final optimization over everything.
+    mapper.request_optimization();
+    while mapper.step_backend(settings.backend_iterations_per_scan.max(1)) == BackendStep::Working {
+    }
+    let g = mapper.graph();
+    let mut g2o = String::new();
+    for (m, n) in mapper.nodes().iter().zip(g.nodes()) {
+        g2o.push_str(&format!(
+            "VERTEX_SE2 {} {} {} {}\n",
+            m.serial, n.pose.x, n.pose.y, n.pose.theta
+        ));
+    }
+    for e in g.edges() {
+        if e.kind == EdgeKind::Prior {
+            continue;
+        }
+        let (Some(a), Some(b)) = (
+            mapper.nodes().get(e.from.0 as usize),
+            mapper.nodes().get(e.to.0 as usize),
+        ) else {
+            continue;
+        };
+        let (z, i) = (&e.measurement, &e.information);
+        g2o.push_str(&format!(
+            "EDGE_SE2 {} {} {} {} {} {} {} {} {} {} {}\n",
+            a.serial,
+            b.serial,
+            z.x,
+            z.y,
+            z.theta,
+            i[(0, 0)],
+            i[(0, 1)],
+            i[(0, 2)],
+            i[(1, 1)],
+            i[(1, 2)],
+            i[(2, 2)]
+        ));
+    }
+    Ok(Finished {
+        keyframe_poses: mapper
+            .nodes()
+            .iter()
+            .zip(g.nodes())
+            .map(|(m, n)| (m.serial, n.pose))
+            .collect(),
+        stats: mapper.stats(),
+        nodes: g.node_count(),
+        edges: g.edge_count(),
+        g2o,
+        submaps: mapper
+            .submaps()
+            .map(|(pose, cells)| (pose, cells.to_vec()))
+            .collect(),
+        grid: mapper.config().grid,
+        records: driver.records,
+        rejected: driver.rejected,
+        first_stamp: driver.first_stamp,
+        last_stamp: driver.last_stamp,
+    })
+}
+
+fn finish(
+    f: Finished,
+    settings: &MapSettings,
+    wall_seconds: f64,
+    input_stats: &InputStats,
+) -> Result<MapRun> {
+    if f.records.is_empty() {
+        bail!("no scan was accepted ({} rejected)", f.rejected);
+    }
+    let poses: std::collections::HashMap<u32, Se2> = f.keyframe_poses.iter().copied().collect();
+    let trajectory: Vec<(i64, Se2)> = f
+        .records
+        .iter()
+        .filter_map(|r| Some((r.stamp, poses.get(&r.reference)?.compose(&r.rel))))
+        .collect();
+    let gpe: Vec<(i64, Se2)> = f.records.iter().map(|r| (r.stamp, r.gpe)).collect();
+    let out = &settings.out;
+    write_tum(&out.join("trajectory.tum"), &trajectory)?;
+    write_tum(&out.join("gpe.tum"), &gpe)?;
+    crate::io::atomic::write_file(&out.join("graph.g2o"), f.g2o.as_bytes())?;
+    let views: Vec<SubmapView<'_>> = f
+        .submaps
+        .iter()
+        .map(|(origin, cells)| SubmapView {
+            origin: *origin,
+            side: f.grid.side as usize,
+            resolution: f.grid.resolution,
+            cells,
+        })
+        .collect();
+    let grid = compose_global_grid(&views)?;
+    write_map_server(out, "map", &grid.as_grid_ref())?;
+    let xy: Vec<(f64, f64)> = trajectory.iter().map(|(_, p)| (p.x, p.y)).collect();
+    write_map_png(&out.join("map.png"), &grid.as_grid_ref(), &xy)?;
+
+    // Largest step of the real-time pose beyond the front-end's step.
+    let mut jump: f64 = 0.0;
+    for w in f.records.windows(2) {
+        let g = w[0].gpe.between(&w[1].gpe);
+        let o = w[0].frontend.between(&w[1].frontend);
+        jump = jump.max((g.x - o.x).hypot(g.y - o.y));
+    }
+    let data_seconds = (f.last_stamp - f.first_stamp.unwrap_or(f.last_stamp)) as f64 * 1e-9;
+    let s = f.stats;
+    let mut report = MapReport {
+        scans: f.records.len() as u64 + f.rejected,
+        scans_rejected: f.rejected,
+        keyframes: s.keyframes as u64,
+        nodes: f.nodes as u64,
+        edges: f.edges as u64,
+        loop_closures: s.loop_closures as u64,
+        data_seconds,
+        wall_seconds,
+        peak_heap_bytes: peak_heap_bytes(),
+        gpe_max_jump_m: jump,
+        gpe_rate_hz: gpe.len() as f64 / wall_seconds.max(1e-9),
+        extra: Default::default(),
+    };
+    report.add_input_stats(input_stats);
+    report
+        .extra
+        .insert("profile".into(), serde_json::to_value(settings.profile)?);
+    report
+        .extra
+        .insert("deterministic".into(), json!(settings.deterministic));
+    report
+        .extra
+        .insert("backend_delay_s".into(), json!(settings.backend_delay_s));
+    report
+        .extra
+        .insert("speed_x_realtime".into(), json!(report.speed()));
+    report.extra.insert("mapper".into(), stats_json(&s));
+    report.write(&out.join("report.json"))?;
+    Ok(MapRun {
+        report,
+        trajectory,
+        gpe,
+        stats: s,
+    })
+}
+
+fn stats_json(s: &MapperStats) -> serde_json::Value {
+    json!({
+        "scans": s.scans,
+        "scans_out_of_order": s.scans_out_of_order,
+        "scans_empty": s.scans_empty,
+        "beams_invalid": s.beams_invalid,
+        "icp_failures": s.icp_failures,
+        "icp_degenerate": s.icp_degenerate,
+        "odometry_gaps": s.odometry_gaps,
+        "odometry_rejected": s.odometry_rejected,
+        "keyframes": s.keyframes,
+        "keyframes_dropped": s.keyframes_dropped,
+        "submaps": s.submaps,
+        "submaps_recycled": s.submaps_recycled,
+        "loop_searches": s.loop_searches,
+        "loop_closures": s.loop_closures,
+        "loops_no_match": s.loops_no_match,
+        "loops_rejected": s.loops_rejected,
+        "loops_unconfirmed": s.loops_unconfirmed,
+        "gpe_solved": s.gpe_solved,
+        "gpe_predicted": s.gpe_predicted,
+        "optimizations": s.optimizations,
+        "backend_steps": s.backend_steps,
+        "optimization_failures": s.optimization_failures,
+    })
+}
+
+/// The directory name used when `--out` is not given.
+pub fn default_out(input: Option<&Path>) -> PathBuf {
+    match input.and_then(|p| p.file_stem()) {
+        Some(stem) => PathBuf::from("out").join(stem),
+        None => PathBuf::from("out").join("sim-home"),
+    }
+}
