@@ -1,0 +1,225 @@
+//! `cloi map` as a user runs it: the simulated home by default, every output written,
+//! deterministic runs identical, and bad input rejected and counted without a crash.
+
+use std::fmt::Write as _;
+use std::path::Path;
+use std::process::Command;
+
+fn cloi(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(args)
+        .output()
+        .expect("cloi runs")
+}
+
+fn report(dir: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(dir.join("report.json")).expect("report.json");
+    serde_json::from_str(&text).expect("valid JSON")
+}
+
+fn tum_rows(path: &Path) -> Vec<Vec<f64>> {
+    std::fs::read_to_string(path)
+        .expect("trajectory")
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            l.split_whitespace()
+                .map(|v| v.parse().expect("number"))
+                .collect()
+        })
+        .collect()
+}
+
+#[test]
+fn simulated_home_writes_every_output_and_repeats_bit_for_bit() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let run = |name: &str| {
+        let dir = tmp.path().join(name);
+        let out = cloi(&[
+            "map",
+            "--deterministic",
+            "--quiet",
+            "--sim-duration",
+            "40",
+            "--out",
+            dir.to_str().expect("utf-8"),
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        dir
+    };
+    let a = run("a");
+    for f in [
+        "map.pgm",
+        "map.yaml",
+        "map.png",
+        "trajectory.tum",
+        "gpe.tum",
+        "graph.g2o",
+        "report.json",
+    ] {
+        assert!(a.join(f).is_file(), "{f} missing");
+    }
+    let r = report(&a);
+    for key in [
+        "scans",
+        "keyframes",
+        "nodes",
+        "edges",
+        "loop_closures",
+        "data_seconds",
+        "wall_seconds",
+        "peak_heap_bytes",
+        "gpe_max_jump_m",
+        "gpe_rate_hz",
+    ] {
+        assert!(r.get(key).is_some(), "report lacks {key}: {r}");
+    }
+    let scans = r["scans"].as_u64().expect("scans");
+    let rejected = r["scans_rejected"].as_u64().expect("rejected");
+    assert!(scans > 50, "{r}");
+    assert!(r["keyframes"].as_u64().expect("keyframes") > 10, "{r}");
+    assert!(r["data_seconds"].as_f64().expect("seconds") > 30.0, "{r}");
+    assert!(r["peak_heap_bytes"].as_u64().expect("heap") > 0, "{r}");
+    assert!(r["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{r}");
+    assert_eq!(r["profile"], "home");
+    // One pose per accepted scan, in both trajectories.
+    let traj = tum_rows(&a.join("trajectory.tum"));
+    assert_eq!(traj.len() as u64, scans - rejected);
+    assert_eq!(tum_rows(&a.join("gpe.tum")).len(), traj.len());
+    assert!(traj.iter().all(|row| row.len() == 8));
+    // The map image has the size the YAML says and is not blank.
+    let yaml = std::fs::read_to_string(a.join("map.yaml")).expect("yaml");
+    assert!(yaml.contains("image: map.pgm"), "{yaml}");
+    let pgm = std::fs::read(a.join("map.pgm")).expect("pgm");
+    assert!(pgm.starts_with(b"P5\n"));
+    assert!(
+        pgm.iter().skip(20).any(|&v| v == 0),
+        "no occupied cell in the map"
+    );
+    // graph.g2o has every node and its edges.
+    let g2o = std::fs::read_to_string(a.join("graph.g2o")).expect("g2o");
+    let vertices = g2o.lines().filter(|l| l.starts_with("VERTEX_SE2")).count();
+    assert_eq!(vertices as u64, r["nodes"].as_u64().expect("nodes"));
+    let b = run("b");
+    for f in ["trajectory.tum", "gpe.tum", "graph.g2o", "map.pgm"] {
+        assert_eq!(
+            std::fs::read(a.join(f)).expect("a"),
+            std::fs::read(b.join(f)).expect("b"),
+            "{f} differs between two deterministic runs"
+        );
+    }
+}
+
+/// Ray-cast ranges in a 6 m x 4 m room with a box, 181 beams over 180 degrees.
+fn room_scan(x: f64, y: f64, th: f64) -> Vec<f64> {
+    let walls = [
+        [0.0, 0.0, 6.0, 0.0],
+        [6.0, 0.0, 6.0, 4.0],
+        [6.0, 4.0, 0.0, 4.0],
+        [0.0, 4.0, 0.0, 0.0],
+        [2.5, 1.5, 3.5, 1.5],
+        [3.5, 1.5, 3.5, 2.5],
+        [3.5, 2.5, 2.5, 2.5],
+        [2.5, 2.5, 2.5, 1.5],
+    ];
+    (0..181)
+        .map(|i| {
+            let a = th - std::f64::consts::FRAC_PI_2 + (i as f64).to_radians();
+            let (dx, dy) = (a.cos(), a.sin());
+            walls
+                .iter()
+                .filter_map(|w| {
+                    let (ex, ey) = (w[2] - w[0], w[3] - w[1]);
+                    let den = dx * ey - dy * ex;
+                    if den.abs() < 1e-12 {
+                        return None;
+                    }
+                    let (qx, qy) = (w[0] - x, w[1] - y);
+                    let t = (qx * ey - qy * ex) / den;
+                    let u = (qx * dy - qy * dx) / den;
+                    (t > 0.0 && (0.0..=1.0).contains(&u)).then_some(t)
+                })
+                .fold(f64::INFINITY, f64::min)
+        })
+        .collect()
+}
+
+#[test]
+fn bad_scans_in_a_log_are_rejected_and_counted() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let mut log = String::from("# synthetic log\nPARAM robot_frontlaser_offset 0.0 nohost 0\n");
+    let mut t = 1000.0;
+    let line = |log: &mut String, ranges: &str, n: usize, x: f64, t: f64| {
+        writeln!(
+            log,
+            "FLASER {n} {ranges} {x} 1.0 0.0 {x} 1.0 0.0 {t:.6} host {t:.6}"
+        )
+        .expect("write");
+    };
+    for i in 0..60 {
+        let x = 1.0 + 0.05 * i as f64;
+        let r = room_scan(x, 1.0, 0.0);
+        let text: Vec<String> = r.iter().map(|v| format!("{v:.3}")).collect();
+        line(&mut log, &text.join(" "), 181, x, t);
+        match i {
+            // A scan of NaN ranges only.
+            10 => line(&mut log, &vec!["nan"; 181].join(" "), 181, x, t + 0.01),
+            // A time stamp going backwards.
+            20 => line(&mut log, &text.join(" "), 181, x, t - 5.0),
+            // An empty scan.
+            30 => line(&mut log, "", 0, x, t + 0.02),
+            _ => {}
+        }
+        t += 0.1;
+    }
+    // A scan with some NaN beams is used.
+    let mut r: Vec<String> = room_scan(4.0, 1.0, 0.0)
+        .iter()
+        .map(|v| format!("{v:.3}"))
+        .collect();
+    r[5] = "nan".into();
+    r[6] = "nan".into();
+    line(&mut log, &r.join(" "), 181, 4.0, t);
+    let path = tmp.path().join("bad.clf");
+    std::fs::write(&path, log).expect("write log");
+    let dir = tmp.path().join("out");
+    let out = cloi(&[
+        "map",
+        path.to_str().expect("utf-8"),
+        "--profile",
+        "home",
+        "--deterministic",
+        "--quiet",
+        "--out",
+        dir.to_str().expect("utf-8"),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let r = report(&dir);
+    let m = &r["mapper"];
+    assert_eq!(r["scans"].as_u64(), Some(64), "{r}");
+    assert_eq!(r["scans_rejected"].as_u64(), Some(3), "{r}");
+    assert_eq!(m["scans_out_of_order"].as_u64(), Some(1), "{r}");
+    assert_eq!(m["scans_empty"].as_u64(), Some(2), "{r}");
+    assert!(m["beams_invalid"].as_u64().expect("beams") >= 183, "{r}");
+    assert_eq!(tum_rows(&dir.join("trajectory.tum")).len(), 61);
+    // The robot drove 3 m along x: the trajectory follows.
+    let traj = tum_rows(&dir.join("trajectory.tum"));
+    let (first, last) = (&traj[0], &traj[traj.len() - 1]);
+    let dx = last[1] - first[1];
+    assert!((dx - 3.0).abs() < 0.1, "travelled {dx} m");
+}
+
+#[test]
+fn unreadable_input_is_an_error_with_its_name() {
+    let out = cloi(&["map", "/no/such/file.clf", "--quiet"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/no/such/file.clf"));
+}
