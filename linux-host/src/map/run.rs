@@ -5,7 +5,7 @@
 //!   fixed budget of Gauss-Newton iterations (or, with `--backend-delay S`, runs only once per
 //!   `S` seconds of data, to completion). The same input gives bit-identical outputs.
 //! * **threaded** (default): the real-time part (front-end and GPE) on the calling thread and the
-//!   back-end on a second thread that takes one iteration at a time under the mapper's lock and
+//!   back-end on a second thread at the lowest scheduling priority that takes one iteration at a time under the mapper's lock and
 //!   yields between steps. A frame whose lock wait plus processing exceeds the GPE deadline is
 //!   given the worst-case prediction on the next frame.
 //!
@@ -324,6 +324,11 @@ fn drive(
         let done = std::sync::atomic::AtomicBool::new(false);
         std::thread::scope(|s| -> Result<()> {
             let backend = s.spawn(|| {
+                // Lowest priority for the back-end (nice 19 under Linux's normal policy); when
+                // the system refuses, it still only takes the lock between frames.
+                let _ = thread_priority::set_current_thread_priority(
+                    thread_priority::ThreadPriority::Min,
+                );
                 let mut last_run: i64 = i64::MIN;
                 while !done.load(std::sync::atomic::Ordering::Acquire) {
                     let idle = match shared.lock() {
