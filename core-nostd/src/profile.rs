@@ -10,6 +10,7 @@
 //! the front-end's local point map, scan buffer and odometry history, and the mapper's small
 //! state. [`MapperResources::mapper`] lends them to a [`Mapper`].
 
+use crate::backend::prune::PruneStorage;
 use crate::frontend::odometry::{OdometryConfig, OdometryFusion};
 use crate::frontend::scan::{ScanPoint, ScanPoints};
 use crate::frontend::{KeyframeConfig, PointMap};
@@ -72,13 +73,14 @@ pub const AIRPORT: ProfileSpec = ProfileSpec {
     name: "airport",
     area_m2: 60_000,
     budget_bytes: 200 * MIB,
-    max_nodes: 131072,
-    max_edges: 393216,
+    max_nodes: 98304,
+    max_edges: 294912,
     max_submaps: 1600,
     submap_cells: 100 * 100,
-    // Six factor blocks per node: M3500 needs 5.5 after minimum-degree ordering; denser
+    // 1.6 nodes per square metre: the pruning keeps about one per 1 m cell plus the recent
+    // window. Six factor blocks per node: M3500 needs 5.5 after minimum-degree ordering; denser
     // graphs are pruned before they reach the airport's node count.
-    max_factor_blocks: 6 * 131072,
+    max_factor_blocks: 6 * 98304,
 };
 
 /// Every built-in profile.
@@ -116,6 +118,8 @@ pub struct MapperResources<
     pub loop_scan: ScanPoints,
     /// Wheel odometry and gyro history.
     pub odometry: OdometryFusion<ODOMETRY_HISTORY>,
+    /// Scratch of the pruning that makes room when a pool is full.
+    pub prune: PruneStorage<NODES, EDGES>,
     /// Counters and the front-end's and back-end's small state.
     pub state: MapperState,
 }
@@ -145,6 +149,7 @@ impl<
             scan: ScanPoints::new(),
             loop_scan: ScanPoints::new(),
             odometry: OdometryFusion::new(OdometryConfig::DEFAULT),
+            prune: PruneStorage::new(),
             state: MapperState::new(KeyframeConfig {
                 distance: 0.2,
                 angle: 0.35,
@@ -186,6 +191,7 @@ impl<
                 reference: &mut self.loop_reference,
                 loop_scan: &mut self.loop_scan,
                 odometry: &mut self.odometry,
+                prune: self.prune.scratch(),
                 state: &mut self.state,
             },
         )

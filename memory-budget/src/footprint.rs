@@ -2,6 +2,7 @@
 
 use core::mem::size_of;
 
+use cloi_core::backend::prune::PruneStorage;
 use cloi_core::frontend::odometry::OdometryFusion;
 use cloi_core::frontend::scan::{ScanPoint, ScanPoints};
 use cloi_core::frontend::PointMap;
@@ -70,7 +71,12 @@ fn row(name: &'static str, count: usize, element_bytes: usize) -> PoolRow {
     }
 }
 
-fn footprint_of(spec: ProfileSpec, total_bytes: usize, solver_bytes: usize) -> ProfileFootprint {
+fn footprint_of(
+    spec: ProfileSpec,
+    total_bytes: usize,
+    solver_bytes: usize,
+    prune_bytes: usize,
+) -> ProfileFootprint {
     ProfileFootprint {
         spec,
         total_bytes,
@@ -106,6 +112,7 @@ fn footprint_of(spec: ProfileSpec, total_bytes: usize, solver_bytes: usize) -> P
                 1,
                 size_of::<OdometryFusion<ODOMETRY_HISTORY>>(),
             ),
+            row("pruning scratch", 1, prune_bytes),
             row("mapper state", 1, size_of::<MapperState>()),
         ],
     }
@@ -120,6 +127,7 @@ pub fn all_profiles() -> Vec<ProfileFootprint> {
             size_of::<
                 SolverWorkspace<{ HOME.max_nodes }, { HOME.max_edges }, { HOME.max_factor_blocks }>,
             >(),
+            size_of::<PruneStorage<{ HOME.max_nodes }, { HOME.max_edges }>>(),
         ),
         footprint_of(
             OFFICE,
@@ -131,6 +139,7 @@ pub fn all_profiles() -> Vec<ProfileFootprint> {
                     { OFFICE.max_factor_blocks },
                 >,
             >(),
+            size_of::<PruneStorage<{ OFFICE.max_nodes }, { OFFICE.max_edges }>>(),
         ),
         footprint_of(
             AIRPORT,
@@ -142,6 +151,7 @@ pub fn all_profiles() -> Vec<ProfileFootprint> {
                     { AIRPORT.max_factor_blocks },
                 >,
             >(),
+            size_of::<PruneStorage<{ AIRPORT.max_nodes }, { AIRPORT.max_edges }>>(),
         ),
     ]
 }

@@ -135,6 +135,12 @@ pub struct BackendConfig {
     pub every_keyframes: u32,
     /// Most Gauss-Newton iterations of one optimization (spread over back-end steps).
     pub max_iterations: u32,
+    /// Cell of the pruning that makes room when a pool is full, metres.
+    pub prune_cell: f64,
+    /// Share of the information term in the pruning weight (eq. 4).
+    pub prune_s: f64,
+    /// The newest keyframes are never pruned.
+    pub prune_keep_recent: u32,
     /// Chi2 threshold of the odometry-chain gate that warm-starts max-mixture loops (see
     /// `solver::gate`); 0 disables it.
     pub gate_chi2: f64,
@@ -145,6 +151,9 @@ impl Default for BackendConfig {
         BackendConfig {
             every_keyframes: 50,
             max_iterations: 20,
+            prune_cell: 0.5,
+            prune_s: 0.5,
+            prune_keep_recent: 30,
             gate_chi2: 16.27,
         }
     }

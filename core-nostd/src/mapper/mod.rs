@@ -29,14 +29,17 @@
 //! keyframe that opened it), so its world pose is the anchor's estimate.
 //!
 //! Memory: everything lives in [`MapperResources`](crate::profile::MapperResources); the
-//! mapper only borrows it. A full node or edge pool stops new keyframes (counted in
+//! mapper only borrows it. A full node or edge pool is pruned (module `pool`); if that frees nothing
+//! new keyframes are dropped (counted in
 //! [`MapperStats::keyframes_dropped`]) instead of failing; a full submap pool recycles the
 //! submap that newer ones cover best.
 
 pub mod config;
 pub mod gpe;
 mod loops;
+mod pool;
 
+use crate::backend::prune::PruneScratch;
 use crate::frontend::odometry::{OdomError, OdometryFusion};
 use crate::frontend::scan::{BeamGeometry, ScanPoint, ScanPoints};
 use crate::frontend::{align, preprocess, KeyframeSelector, PointMap, Submap};
@@ -162,6 +165,10 @@ pub struct MapperStats {
     pub backend_steps: u32,
     /// Back-end optimizations that failed (the estimate was kept).
     pub optimization_failures: u32,
+    /// Times a full node or edge pool was pruned.
+    pub prunes: u32,
+    /// Nodes eliminated by pruning.
+    pub nodes_pruned: u32,
 }
 
 /// Errors of the mapper.
@@ -303,6 +310,8 @@ impl MapperState {
                 optimizations: 0,
                 backend_steps: 0,
                 optimization_failures: 0,
+                prunes: 0,
+                nodes_pruned: 0,
             },
             last_stamp: None,
             last: None,
@@ -344,6 +353,7 @@ pub struct Mapper<'r> {
     pub(crate) reference: &'r mut [ScanPoint],
     pub(crate) loop_scan: &'r mut ScanPoints,
     pub(crate) odometry: &'r mut OdometryFusion<ODOMETRY_HISTORY>,
+    pub(crate) prune: PruneScratch<'r>,
     pub(crate) st: &'r mut MapperState,
 }
 
@@ -372,6 +382,8 @@ pub struct MapperParts<'r> {
     pub loop_scan: &'r mut ScanPoints,
     /// Odometry fusion.
     pub odometry: &'r mut OdometryFusion<ODOMETRY_HISTORY>,
+    /// Scratch of the pool pruning (as large as the graph's capacity).
+    pub prune: PruneScratch<'r>,
     /// Small state.
     pub state: &'r mut MapperState,
 }
@@ -433,6 +445,7 @@ impl<'r> Mapper<'r> {
             reference: parts.reference,
             loop_scan: parts.loop_scan,
             odometry: parts.odometry,
+            prune: parts.prune,
             st: parts.state,
         })
     }
@@ -689,6 +702,15 @@ impl<'r> Mapper<'r> {
         } else {
             None
         };
+        if self.pool_nearly_full() {
+            self.prune_pool();
+        }
+        let n = self.graph.node_count();
+        let odometry_edge = odometry_edge.map(|e| PoseEdge {
+            from: NodeId((n - 1) as u32),
+            to: NodeId(n as u32),
+            ..e
+        });
         if n >= self.graph.node_capacity()
             || (odometry_edge.is_some() && self.graph.edge_count() >= self.graph.edge_capacity())
         {

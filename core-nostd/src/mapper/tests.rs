@@ -386,3 +386,57 @@ fn resources_of_another_grid_are_refused() {
         ));
     });
 }
+
+#[test]
+fn a_full_pool_is_pruned_and_mapping_goes_on() {
+    with_stack(|| {
+        type Small = MapperResources<96, 288, 12, { 82 * 82 }, 2048>;
+        let mut res: Box<Small> = Box::default();
+        let cfg = MapperConfig {
+            backend: BackendConfig {
+                prune_keep_recent: 10,
+                ..config().backend
+            },
+            ..config()
+        };
+        let mut mapper = res.mapper(cfg).expect("resources fit");
+        let truth = path();
+        let mut keyframe_truth = Vec::new();
+        for (i, p) in truth.iter().enumerate() {
+            let t = 1_000_000_000 + i as i64 * 100_000_000;
+            mapper.push_odometry(t, *p).expect("odometry");
+            let ranges = scan_at(p);
+            let scan = ScanInput {
+                stamp: t,
+                ranges: &ranges,
+                geometry: geometry(),
+                mounting: Se2::IDENTITY,
+            };
+            let out = mapper.push_scan(&scan, false).expect("scan");
+            if out.keyframe {
+                keyframe_truth.push(*p);
+            }
+            mapper.step_backend(5);
+            assert!(mapper.graph().node_count() <= 96);
+        }
+        while mapper.step_backend(10) != BackendStep::Idle {}
+        let s = mapper.stats();
+        assert!(s.prunes >= 1, "{s:?}");
+        assert!(s.nodes_pruned > 0, "{s:?}");
+        assert!(s.keyframes as usize > 96, "{s:?}");
+        assert_eq!(s.keyframes_dropped, 0, "{s:?}");
+        // The kept nodes are still where the robot was (the first keyframe is the map's origin).
+        let origin = keyframe_truth[0];
+        for (m, node) in mapper.nodes().iter().zip(mapper.graph().nodes()) {
+            let expect = origin.between(&keyframe_truth[m.serial as usize]);
+            let d = expect.between(&node.pose);
+            assert!(
+                libm::hypot(d.x, d.y) < 0.15,
+                "keyframe {} off by {d:?}",
+                m.serial
+            );
+        }
+        // Submaps still have their anchors.
+        assert!(mapper.submaps().count() >= 3);
+    });
+}

@@ -162,6 +162,8 @@ struct ScanRecord {
 /// State of the real-time loop shared by both schedules.
 struct Driver {
     records: Vec<ScanRecord>,
+    /// Front-end pose of every keyframe by serial (to place scans whose keyframe was pruned).
+    keyframe_frontend: Vec<Se2>,
     first_stamp: Option<i64>,
     last_stamp: i64,
     rejected: u64,
@@ -221,6 +223,13 @@ impl Driver {
             .node_of(out.reference_serial)
             .and_then(|i| mapper.nodes().get(i))
             .map_or(Se2::IDENTITY, |m| m.frontend);
+        if out.keyframe {
+            let s = out.reference_serial as usize;
+            if self.keyframe_frontend.len() <= s {
+                self.keyframe_frontend.resize(s + 1, Se2::IDENTITY);
+            }
+            self.keyframe_frontend[s] = out.frontend;
+        }
         self.first_stamp.get_or_insert(out.stamp);
         self.last_stamp = out.stamp;
         self.records.push(ScanRecord {
@@ -259,6 +268,7 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
 /// What the mapper thread hands back.
 struct Finished {
     records: Vec<ScanRecord>,
+    keyframe_frontend: Vec<Se2>,
     keyframe_poses: Vec<(u32, Se2)>,
     stats: MapperStats,
     nodes: usize,
@@ -279,6 +289,7 @@ fn drive(
 ) -> Result<Finished> {
     let mut driver = Driver {
         records: Vec::new(),
+        keyframe_frontend: Vec::new(),
         first_stamp: None,
         last_stamp: 0,
         rejected: 0,
@@ -444,6 +455,7 @@ fn drive(
             .collect(),
         grid: mapper.config().grid,
         records: driver.records,
+        keyframe_frontend: driver.keyframe_frontend,
         rejected: driver.rejected,
         first_stamp: driver.first_stamp,
         last_stamp: driver.last_stamp,
@@ -459,11 +471,35 @@ fn finish(
     if f.records.is_empty() {
         bail!("no scan was accepted ({} rejected)", f.rejected);
     }
-    let poses: std::collections::HashMap<u32, Se2> = f.keyframe_poses.iter().copied().collect();
+    // A scan hangs off its reference keyframe; when pruning removed that keyframe, off the
+    // nearest kept one, through the front-end motion between the two.
+    let poses: std::collections::BTreeMap<u32, Se2> = f.keyframe_poses.iter().copied().collect();
+    let place = |r: &ScanRecord| -> Option<Se2> {
+        if let Some(p) = poses.get(&r.reference) {
+            return Some(p.compose(&r.rel));
+        }
+        let before = poses.range(..r.reference).next_back();
+        let after = poses.range(r.reference..).next();
+        let (&k, g) = match (before, after) {
+            (Some(b), Some(a)) => {
+                if r.reference - b.0 <= a.0 - r.reference {
+                    b
+                } else {
+                    a
+                }
+            }
+            (Some(b), None) => b,
+            (None, Some(a)) => a,
+            (None, None) => return None,
+        };
+        let fk = f.keyframe_frontend.get(k as usize)?;
+        let fs = f.keyframe_frontend.get(r.reference as usize)?;
+        Some(g.compose(&fk.between(fs)).compose(&r.rel))
+    };
     let trajectory: Vec<(i64, Se2)> = f
         .records
         .iter()
-        .filter_map(|r| Some((r.stamp, poses.get(&r.reference)?.compose(&r.rel))))
+        .filter_map(|r| Some((r.stamp, place(r)?)))
         .collect();
     let gpe: Vec<(i64, Se2)> = f.records.iter().map(|r| (r.stamp, r.gpe)).collect();
     let out = &settings.out;
@@ -555,6 +591,8 @@ fn stats_json(s: &MapperStats) -> serde_json::Value {
         "optimizations": s.optimizations,
         "backend_steps": s.backend_steps,
         "optimization_failures": s.optimization_failures,
+        "prunes": s.prunes,
+        "nodes_pruned": s.nodes_pruned,
     })
 }
 
