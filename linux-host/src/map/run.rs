@@ -164,6 +164,8 @@ struct Driver {
     records: Vec<ScanRecord>,
     /// Front-end pose of every keyframe by serial (to place scans whose keyframe was pruned).
     keyframe_frontend: Vec<Se2>,
+    /// Wall time of the real-time part per scan (front-end, GPE, keyframe, loop search), µs.
+    scan_us: Vec<f64>,
     first_stamp: Option<i64>,
     last_stamp: i64,
     rejected: u64,
@@ -209,7 +211,10 @@ impl Driver {
                     mounting: s.laser_offset,
                 };
                 let late = std::mem::take(&mut self.late);
-                match mapper.push_scan(&input, late) {
+                let t0 = Instant::now();
+                let result = mapper.push_scan(&input, late);
+                self.scan_us.push(t0.elapsed().as_secs_f64() * 1e6);
+                match result {
                     Ok(out) => self.accept(mapper, &out),
                     Err(_) => self.rejected += 1,
                 }
@@ -267,6 +272,7 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
 
 /// What the mapper thread hands back.
 struct Finished {
+    scan_us: Vec<f64>,
     records: Vec<ScanRecord>,
     keyframe_frontend: Vec<Se2>,
     keyframe_poses: Vec<(u32, Se2)>,
@@ -290,6 +296,7 @@ fn drive(
     let mut driver = Driver {
         records: Vec::new(),
         keyframe_frontend: Vec::new(),
+        scan_us: Vec::new(),
         first_stamp: None,
         last_stamp: 0,
         rejected: 0,
@@ -456,6 +463,7 @@ fn drive(
         grid: mapper.config().grid,
         records: driver.records,
         keyframe_frontend: driver.keyframe_frontend,
+        scan_us: driver.scan_us,
         rejected: driver.rejected,
         first_stamp: driver.first_stamp,
         last_stamp: driver.last_stamp,
@@ -558,6 +566,18 @@ fn finish(
         .extra
         .insert("speed_x_realtime".into(), json!(report.speed()));
     report.extra.insert("mapper".into(), stats_json(&s));
+    let mut us = f.scan_us.clone();
+    us.sort_by(f64::total_cmp);
+    let pct = |q: f64| us.get(((us.len() as f64 - 1.0) * q).round() as usize).copied();
+    report.extra.insert(
+        "realtime_us_per_scan".into(),
+        json!({
+            "median": pct(0.5),
+            "p99": pct(0.99),
+            "max": us.last(),
+            "note": "wall time of push_scan (front-end, GPE, keyframe, loop search) on the host",
+        }),
+    );
     report.write(&out.join("report.json"))?;
     Ok(MapRun {
         report,
