@@ -910,6 +910,95 @@ pub fn sim_input_with(world: &str, cfg: SimConfig) -> Result<InputStream> {
     Ok(stream)
 }
 
+// ---------------------------------------------------------------------------------------
+// Command-line options
+
+/// The input options of `cloi map` (flatten into the subcommand with `#[command(flatten)]`).
+#[derive(Debug, Clone, Default, PartialEq, clap::Args)]
+pub struct InputArgs {
+    /// CARMEN laser: front (FLASER or ROBOTLASER1, whichever comes first), flaser,
+    /// robotlaser, rear, raw1..raw4.
+    #[arg(long, default_value = "front")]
+    pub laser: LaserChoice,
+    /// Pose of the laser on the robot, `X,Y,THETA` (m, m, rad), overriding the input's PARAM
+    /// lines or static transform.
+    #[arg(long, value_name = "X,Y,THETA", value_parser = parse_pose, allow_hyphen_values = true)]
+    pub laser_offset: Option<Se2>,
+    /// `range_max` of every scan (m), overriding the input's.
+    #[arg(long)]
+    pub range_max: Option<f32>,
+    /// Bag topic of the laser scans (default: the first `sensor_msgs/LaserScan` topic).
+    #[arg(long)]
+    pub scan_topic: Option<String>,
+    /// Bag topic of the wheel odometry (default: the first `nav_msgs/Odometry` topic).
+    #[arg(long)]
+    pub odom_topic: Option<String>,
+    /// Bag topic of the IMU (default: the first `sensor_msgs/Imu` topic).
+    #[arg(long)]
+    pub imu_topic: Option<String>,
+    /// Robot frame of a bag without odometry, for the laser's static transform.
+    #[arg(long)]
+    pub base_frame: Option<String>,
+    /// Damaged input is an error (default: skip and count it).
+    #[arg(long)]
+    pub strict: bool,
+    /// Without INPUT: the simulated world (`home`, `office`, `airport` or a world file).
+    #[arg(long, default_value = "home")]
+    pub sim_world: String,
+    /// Without INPUT: simulated seconds.
+    #[arg(long, default_value_t = 120.0)]
+    pub sim_duration: f64,
+    /// Without INPUT: the simulator's seed.
+    #[arg(long, default_value_t = 0)]
+    pub sim_seed: u64,
+}
+
+/// Parses `X,Y,THETA`.
+///
+/// # Errors
+/// Not three finite numbers separated by commas.
+pub fn parse_pose(text: &str) -> std::result::Result<Se2, String> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<std::result::Result<_, _>>()
+        .map_err(|e| format!("{text:?}: {e}; expected X,Y,THETA"))?;
+    match v[..] {
+        [x, y, theta] if v.iter().all(|n| n.is_finite()) => Ok(Se2::new(x, y, theta)),
+        _ => Err(format!("{text:?}: expected three finite numbers X,Y,THETA")),
+    }
+}
+
+impl InputArgs {
+    /// The reading options.
+    pub fn options(&self) -> InputOptions {
+        InputOptions {
+            strict: self.strict,
+            laser: self.laser,
+            laser_offset: self.laser_offset,
+            range_max: self.range_max,
+            topics: TopicSelection {
+                scan: self.scan_topic.clone(),
+                odom: self.odom_topic.clone(),
+                imu: self.imu_topic.clone(),
+                image: None,
+            },
+            base_frame: self.base_frame.clone(),
+        }
+    }
+
+    /// Opens `input`, or the simulator when there is none.
+    ///
+    /// # Errors
+    /// See [`open_input`] and [`sim_input`].
+    pub fn open(&self, input: Option<&Path>) -> Result<InputStream> {
+        match input {
+            Some(path) => open_input(path, &self.options()),
+            None => sim_input(&self.sim_world, self.sim_duration, self.sim_seed),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1210,6 +1299,44 @@ RLASER 2 3.0 4.0 1.0 2.0 3.14159 1.0 2.0 0.0 5.1 h 0\n";
         let stats = stream.stats();
         assert_eq!(stats.laser_offset_source.as_deref(), Some("identity"));
         assert!(stats.warnings[0].contains("no static transform"));
+    }
+
+    #[derive(Debug, clap::Parser)]
+    struct Cmd {
+        input: Option<PathBuf>,
+        #[command(flatten)]
+        args: InputArgs,
+    }
+
+    #[test]
+    fn command_line_options() {
+        use clap::Parser;
+        let cmd = Cmd::try_parse_from([
+            "map",
+            "x.mcap",
+            "--laser",
+            "rear",
+            "--laser-offset",
+            "-0.1,0,1.5",
+            "--scan-topic",
+            "/front",
+            "--strict",
+        ])
+        .unwrap();
+        let o = cmd.args.options();
+        assert_eq!(o.laser, LaserChoice::Rear);
+        assert_eq!(o.laser_offset, Some(Se2::new(-0.1, 0.0, 1.5)));
+        assert_eq!(o.topics.scan.as_deref(), Some("/front"));
+        assert!(o.strict && o.range_max.is_none());
+        let cmd = Cmd::try_parse_from(["map", "--sim-duration", "1"]).unwrap();
+        assert!(cmd.input.is_none());
+        assert_eq!(cmd.args.options(), InputOptions::default());
+        let mut stream = cmd.args.open(None).unwrap();
+        assert!(matches!(stream.size(), InputSize::Seconds(s) if s == 1.0));
+        assert!(stream.next().unwrap().is_ok());
+        assert!(Cmd::try_parse_from(["map", "--laser-offset", "1,2"]).is_err());
+        assert!(Cmd::try_parse_from(["map", "--laser", "side"]).is_err());
+        assert!(parse_pose("1,nan,0").is_err());
     }
 
     #[test]

@@ -13,8 +13,9 @@ pub mod input;
 pub mod output;
 pub mod run;
 
-pub use config::MapConfig;
+pub use config::{MapConfig, Profile};
 pub use input::{
-    open_input, sim_input, InputOptions, InputStats, InputStream, ScanEvent, SensorEvent,
+    open_input, sim_input, InputArgs, InputOptions, InputSize, InputStats, InputStream,
+    LaserChoice, ScanEvent, SensorEvent, StatsHandle,
 };
 pub use output::{compose_global_grid, write_tum, MapReport, OwnedGrid, SubmapView};
