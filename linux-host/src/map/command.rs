@@ -7,7 +7,7 @@ use anyhow::Result;
 use clap::Args;
 
 use super::config::{MapConfig, Profile};
-use super::input::{open_input, sim_input, InputOptions, LaserChoice};
+use super::input::InputArgs;
 use super::run::{default_out, run, MapSettings};
 
 /// Arguments of `cloi map`.
@@ -31,23 +31,17 @@ pub struct MapArgs {
     pub deterministic: bool,
     /// Run the back-end only once per this many seconds of data (tests the real-time pose
     /// under a slow back-end); 0 runs it continuously.
-    #[arg(long, default_value_t = 0.0)]
-    pub backend_delay: f64,
+    #[arg(long)]
+    pub backend_delay: Option<f64>,
     /// Back-end Gauss-Newton iterations after each scan in the deterministic schedule.
     #[arg(long, default_value_t = 5)]
     pub backend_iterations: u32,
     /// Stop after this many scans.
     #[arg(long)]
     pub max_scans: Option<u64>,
-    /// CARMEN laser to use (front, rear, robotlaser, raw1..raw4).
-    #[arg(long, default_value = "front")]
-    pub laser: LaserChoice,
-    /// Simulated duration of the built-in home when no input is given, seconds.
-    #[arg(long, default_value_t = 120.0)]
-    pub sim_duration: f64,
-    /// Seed of the built-in simulation.
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
+    /// How the input is read (laser, mounting, topics, simulator).
+    #[command(flatten)]
+    pub input_args: InputArgs,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -67,16 +61,8 @@ pub fn run_command(args: &MapArgs, out: &mut dyn Write) -> Result<()> {
     if args.deterministic {
         config.run.deterministic = true;
     }
-    let input = match &args.input {
-        Some(path) => open_input(
-            path,
-            &InputOptions {
-                laser: args.laser,
-                ..InputOptions::default()
-            },
-        )?,
-        None => sim_input("home", args.sim_duration, args.seed)?,
-    };
+    let input = args.input_args.open(args.input.as_deref())?;
+    let backend_delay_s = args.backend_delay.unwrap_or(config.run.backend_delay_s);
     let settings = MapSettings {
         profile,
         deterministic: config.run.deterministic,
@@ -85,7 +71,7 @@ pub fn run_command(args: &MapArgs, out: &mut dyn Write) -> Result<()> {
             .out
             .clone()
             .unwrap_or_else(|| default_out(args.input.as_deref())),
-        backend_delay_s: args.backend_delay,
+        backend_delay_s,
         backend_iterations_per_scan: args.backend_iterations,
         max_scans: args.max_scans,
         progress: !args.quiet,

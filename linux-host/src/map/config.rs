@@ -145,9 +145,9 @@ pub struct RunSection {
     /// Run the real-time part and the back-end interleaved with fixed budgets (results are
     /// identical bit for bit between runs) instead of on two threads.
     pub deterministic: bool,
-    /// Hold every optimization result back by this many keyframes before the real-time part
-    /// sees it (tests the GPE's local consistency under a slow back-end); 0: no delay.
-    pub backend_delay_keyframes: u32,
+    /// Run the back-end only once per this many seconds of data (tests the real-time pose's
+    /// local consistency under a slow back-end); 0: no delay. `--backend-delay` overrides it.
+    pub backend_delay_s: f64,
 }
 
 /// The whole configuration of `cloi map`.
@@ -213,7 +213,7 @@ impl MapConfig {
             },
             run: RunSection {
                 deterministic: false,
-                backend_delay_keyframes: 0,
+                backend_delay_s: 0.0,
             },
         };
         match profile {
@@ -350,6 +350,9 @@ impl MapConfig {
         }
         if !positive(l.mahalanobis_gate) {
             bail!("loop_closure.mahalanobis_gate must be positive");
+        }
+        if !(self.run.backend_delay_s >= 0.0 && self.run.backend_delay_s.is_finite()) {
+            bail!("run.backend_delay_s must be a finite number of seconds >= 0");
         }
         if self.gpe.deadline_us == 0 {
             bail!("gpe.deadline_us must be positive");

@@ -568,7 +568,10 @@ fn finish(
     report.extra.insert("mapper".into(), stats_json(&s));
     let mut us = f.scan_us.clone();
     us.sort_by(f64::total_cmp);
-    let pct = |q: f64| us.get(((us.len() as f64 - 1.0) * q).round() as usize).copied();
+    let pct = |q: f64| {
+        us.get(((us.len() as f64 - 1.0) * q).round() as usize)
+            .copied()
+    };
     report.extra.insert(
         "realtime_us_per_scan".into(),
         json!({
