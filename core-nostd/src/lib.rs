@@ -16,6 +16,8 @@
 //! * [`frontend`]: odometry fusion, scan preprocessing, occupancy-grid submaps, ICP, the
 //!   correlative loop-closure search and the keyframe decision (paper section III-B).
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
+//! * [`replay`]: the per-event step run on a recorded log (`.cloilog`) by the firmware and
+//!   by its x86-64 check.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
 #![no_std]
@@ -37,6 +39,7 @@ pub mod frontend;
 pub mod geom;
 pub mod graph;
 pub mod profile;
+pub mod replay;
 pub mod sensor;
 pub mod solver;
 pub mod storage;

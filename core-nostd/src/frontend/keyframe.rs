@@ -32,7 +32,7 @@ pub struct KeyframeSelector {
 
 impl KeyframeSelector {
     /// No keyframe yet: the first pose offered becomes one.
-    pub fn new(config: KeyframeConfig) -> Self {
+    pub const fn new(config: KeyframeConfig) -> Self {
         KeyframeSelector { config, last: None }
     }
 

@@ -22,7 +22,7 @@ pub struct PointMap<const N: usize> {
 
 impl<const N: usize> PointMap<N> {
     /// An empty map with voxels of `voxel` metres (e.g. the grid resolution).
-    pub fn new(voxel: f32) -> Self {
+    pub const fn new(voxel: f32) -> Self {
         PointMap {
             points: heapless::Vec::new(),
             voxel,
