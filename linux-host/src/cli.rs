@@ -26,7 +26,8 @@ pub enum Command {
     Prune(crate::prune::PruneArgs),
     /// Add seeded random false loop closures to a pose graph (robustness tests).
     Corrupt(crate::corrupt::CorruptArgs),
-    /// Convert a CARMEN log to a ROS 2 bag (.mcap), or a bag's odometry to a TUM trajectory.
+    /// Convert a CARMEN log to a ROS 2 bag (.mcap) or to the firmware's binary log (.cloilog),
+    /// or a bag's odometry to a TUM trajectory.
     Convert(crate::io::cli::ConvertArgs),
     /// Evaluate trajectories: relations, ATE, RPE, GMapping reference poses.
     #[command(subcommand)]

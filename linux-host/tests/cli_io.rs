@@ -86,6 +86,53 @@ fn truncated_log_warns_or_fails_with_strict() {
 }
 
 #[test]
+fn convert_log_to_cloilog_with_to_out_and_max_scans() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("tiny.clf");
+    std::fs::write(&log, LOG).unwrap();
+    let out = dir.path().join("tiny.bin");
+    let (ok, v, stderr) = cloi(&[
+        "convert".as_ref(),
+        log.as_os_str(),
+        "--to".as_ref(),
+        "cloilog".as_ref(),
+        "--out".as_ref(),
+        out.as_os_str(),
+        "--max-scans".as_ref(),
+        "1".as_ref(),
+    ]);
+    assert!(ok, "{stderr}");
+    assert_eq!(v["format"], "cloilog");
+    assert_eq!(
+        (v["scans"].as_u64(), v["odometry"].as_u64()),
+        (Some(1), Some(1))
+    );
+    assert_eq!(v["cut_at_max_scans"], true);
+    let bytes = std::fs::read(&out).unwrap();
+    assert_eq!(v["bytes"].as_u64(), Some(bytes.len() as u64));
+    assert!(bytes.starts_with(b"CLOILOG"));
+
+    // By extension, the whole log.
+    let out = dir.path().join("tiny.cloilog");
+    let (ok, v, stderr) = cloi(&["convert".as_ref(), log.as_os_str(), out.as_os_str()]);
+    assert!(ok, "{stderr}");
+    assert_eq!(
+        (v["scans"].as_u64(), v["odometry"].as_u64()),
+        (Some(2), Some(3))
+    );
+
+    let bag = dir.path().join("tiny.mcap");
+    let (ok, _, stderr) = cloi(&[
+        "convert".as_ref(),
+        log.as_os_str(),
+        bag.as_os_str(),
+        "--max-scans".as_ref(),
+        "1".as_ref(),
+    ]);
+    assert!(!ok && stderr.contains("--max-scans"), "{stderr}");
+}
+
+#[test]
 fn eval_relations_and_ref_print_json() {
     let dir = tempfile::tempdir().unwrap();
     let tum = dir.path().join("t.tum");

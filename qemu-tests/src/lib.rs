@@ -22,7 +22,7 @@ pub fn firmware_dir() -> PathBuf {
 /// Bare-metal target of the firmware (hard float; core is built from source).
 pub const FIRMWARE_TARGET: &str = "armv7a-none-eabihf";
 
-/// Builds the firmware in release mode and returns the ELF path.
+/// Builds the firmware binaries in release mode and returns the workload ELF's path.
 ///
 /// # Errors
 /// Cargo fails or the ELF is missing.
@@ -47,15 +47,23 @@ pub fn build_firmware() -> Result<PathBuf> {
     if !status.success() {
         bail!("firmware build failed ({status})");
     }
-    let elf = dir
+    let elf = firmware_elf("cloi-firmware");
+    for bin in [&elf, &firmware_elf("cloi-replay")] {
+        if !bin.is_file() {
+            bail!("firmware ELF {} missing after the build", bin.display());
+        }
+    }
+    Ok(elf)
+}
+
+/// Path of a firmware binary after [`build_firmware`]: `cloi-firmware` (the fixed workload)
+/// or `cloi-replay` (a `.cloilog` streamed through semihosting).
+pub fn firmware_elf(name: &str) -> PathBuf {
+    firmware_dir()
         .join("target")
         .join(FIRMWARE_TARGET)
         .join("release")
-        .join("cloi-firmware");
-    if !elf.is_file() {
-        bail!("firmware ELF {} missing after the build", elf.display());
-    }
-    Ok(elf)
+        .join(name)
 }
 
 /// The QEMU command line for the Cortex-A9 board with exact instruction counting.
@@ -104,15 +112,20 @@ pub struct FirmwareRun {
     pub log: String,
 }
 
-/// Runs the firmware once (with a timeout) and parses its output.
+/// Runs the firmware once with a semihosting command line (QEMU `-append`; empty for none)
+/// under a timeout, and returns what it printed.
 ///
 /// # Errors
-/// QEMU cannot be started, times out, exits non-zero, or the output is malformed.
-pub fn run_firmware(elf: &Path) -> Result<FirmwareRun> {
+/// QEMU cannot be started, times out or exits non-zero.
+pub fn run_firmware_raw(elf: &Path, cmdline: &str) -> Result<String> {
+    let mut qemu = qemu_command(elf);
+    if !cmdline.is_empty() {
+        qemu.arg("-append").arg(cmdline);
+    }
     let out = Command::new("timeout")
-        .arg("300")
-        .arg(qemu_command(elf).get_program())
-        .args(qemu_command(elf).get_args())
+        .arg("600")
+        .arg(qemu.get_program())
+        .args(qemu.get_args())
         .output()
         .context("starting qemu-system-arm (is it installed? run scripts/setup)")?;
     let log = String::from_utf8_lossy(&out.stdout).into_owned();
@@ -123,7 +136,15 @@ pub fn run_firmware(elf: &Path) -> Result<FirmwareRun> {
             String::from_utf8_lossy(&out.stderr)
         );
     }
-    parse_log(&log)
+    Ok(log)
+}
+
+/// Runs the firmware's fixed workload once (with a timeout) and parses its output.
+///
+/// # Errors
+/// QEMU cannot be started, times out, exits non-zero, or the output is malformed.
+pub fn run_firmware(elf: &Path) -> Result<FirmwareRun> {
+    parse_log(&run_firmware_raw(elf, "")?)
 }
 
 fn field<'a>(line: &'a str, key: &str) -> Option<&'a str> {
@@ -167,6 +188,8 @@ pub fn parse_log(log: &str) -> Result<FirmwareRun> {
     }
     Ok(run)
 }
+
+pub mod replay;
 
 #[cfg(test)]
 mod tests {

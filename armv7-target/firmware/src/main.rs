@@ -1,4 +1,4 @@
-//! CLOi-Mapper firmware for a bare-metal Cortex-A9 (QEMU `vexpress-a9`).
+//! CLOi-Mapper firmware for a bare-metal Cortex-A9 (QEMU `vexpress-a9`): the workload binary.
 //!
 //! Runs the core's fixed workload, printing for every section its instruction count (from the
 //! A9 global timer under `-icount shift=0`) and its checksum as raw f64 bits, then the stack
@@ -7,10 +7,9 @@
 #![no_std]
 #![no_main]
 
-mod timer;
-
 use aarch32_rt::entry;
 use cloi_core::workload::Section;
+use cloi_firmware::{report_stack, timer};
 use semihosting::{println, process};
 
 #[entry]
@@ -33,20 +32,6 @@ fn main() -> ! {
     report_stack();
     println!("status=ok");
     process::exit(0)
-}
-
-/// Prints the SYS-mode stack high-water mark. aarch32-rt zeroes the stacks at boot, so the
-/// untouched words at the bottom are still zero.
-fn report_stack() {
-    let Some(range) = aarch32_rt::stacks::Stack::Sys.range(0) else {
-        println!("stack_used_bytes=unknown");
-        return;
-    };
-    // SAFETY: the range is the SYS stack that the linker script reserved; it is mapped, word
-    // aligned and readable.
-    let (total, used) = unsafe { aarch32_cpu::stacks::stack_used_bytes(range) };
-    println!("stack_total_bytes={total}");
-    println!("stack_used_bytes={used}");
 }
 
 #[panic_handler]

@@ -8,8 +8,11 @@
 //!   valid beams; NaN, infinite and out-of-range beams are counted in [`BeamStats`] and skipped.
 //! * [`ScanStampGuard`]: rejects scans whose time does not increase.
 //! * [`ImageView`]: a camera picture over `&[u8]` (mono8, rgb8, bgr8).
+//! * [`log`]: the compact binary sensor log (`.cloilog`) streamed to the firmware, with its
+//!   encoder and a streaming, allocation-free decoder.
 
 mod image;
+pub mod log;
 mod odometry;
 mod scan;
 mod time;

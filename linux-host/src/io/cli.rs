@@ -9,6 +9,7 @@ use clap::Args;
 use serde_json::json;
 
 use super::bag_read::{BagReadOptions, BagReader, SensorMsg, TopicSelection};
+use super::cloilog::carmen_to_cloilog;
 use super::convert::carmen_to_bag;
 use super::tum::{write_tum, StampedPose};
 
@@ -17,9 +18,20 @@ use super::tum::{write_tum, StampedPose};
 pub struct ConvertArgs {
     /// Input: a CARMEN log (`.clf`, `.log`, optionally `.gz`/`.bz2`) or a ROS 2 bag (`.mcap`).
     pub input: PathBuf,
-    /// Output: `.mcap` (ROS 2 bag, from a CARMEN log) or `.tum` (the odometry of a bag or
-    /// log as a TUM trajectory).
-    pub output: PathBuf,
+    /// Output: `.mcap` (ROS 2 bag, from a CARMEN log), `.tum` (the odometry of a bag or
+    /// log as a TUM trajectory) or `.cloilog` (the firmware's binary sensor log, from a CARMEN
+    /// log). Alternatively `--out`.
+    #[arg(required_unless_present = "out")]
+    pub output: Option<PathBuf>,
+    /// Output file (instead of the positional argument).
+    #[arg(long = "out", conflicts_with = "output")]
+    pub out: Option<PathBuf>,
+    /// Output format; default: from the output's extension.
+    #[arg(long, value_enum)]
+    pub to: Option<OutputFormat>,
+    /// Stop after this many scans (`.cloilog` output; e.g. a short log for CI).
+    #[arg(long)]
+    pub max_scans: Option<u64>,
     /// Treat damaged or truncated input as an error instead of a warning.
     #[arg(long)]
     pub strict: bool,
@@ -38,6 +50,37 @@ pub struct ConvertArgs {
     /// Camera topic of an input bag.
     #[arg(long)]
     pub image_topic: Option<String>,
+}
+
+/// Output formats of `cloi convert`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum OutputFormat {
+    /// ROS 2 bag (MCAP).
+    Mcap,
+    /// TUM trajectory of the odometry.
+    Tum,
+    /// The firmware's compact binary sensor log.
+    Cloilog,
+}
+
+impl OutputFormat {
+    fn extension(self) -> &'static str {
+        match self {
+            Self::Mcap => "mcap",
+            Self::Tum => "tum",
+            Self::Cloilog => "cloilog",
+        }
+    }
+}
+
+impl ConvertArgs {
+    /// The output path (positional or `--out`).
+    pub fn output_path(&self) -> &Path {
+        self.output
+            .as_deref()
+            .or(self.out.as_deref())
+            .unwrap_or(Path::new(""))
+    }
 }
 
 fn extension(path: &Path) -> String {
@@ -62,16 +105,49 @@ fn extension(path: &Path) -> String {
 pub fn run(args: &ConvertArgs, out: &mut dyn Write) -> Result<()> {
     let started = Instant::now();
     let input_bytes = std::fs::metadata(&args.input).map(|m| m.len()).unwrap_or(0);
-    let (in_ext, out_ext) = (extension(&args.input), extension(&args.output));
+    let output = args.output_path();
+    let in_ext = extension(&args.input);
+    let out_ext = match args.to {
+        Some(format) => format.extension().to_owned(),
+        None => extension(output),
+    };
+    if args.max_scans.is_some() && out_ext != "cloilog" {
+        bail!("--max-scans applies to .cloilog output only");
+    }
     let report = match (in_ext.as_str(), out_ext.as_str()) {
-        ("clf" | "log", "mcap") => {
-            let r = carmen_to_bag(&args.input, &args.output, args.strict, args.range_max)?;
+        ("clf" | "log", "cloilog") => {
+            let r = carmen_to_cloilog(
+                &args.input,
+                output,
+                args.strict,
+                args.range_max,
+                args.max_scans,
+            )?;
             for w in &r.input.warnings {
                 eprintln!("warning: {w}");
             }
             json!({
                 "input": args.input,
-                "output": args.output,
+                "output": output,
+                "format": "cloilog",
+                "scans": r.scans,
+                "odometry": r.odometry,
+                "other_lasers_skipped": r.other_lasers,
+                "bytes": r.bytes,
+                "cut_at_max_scans": r.cut,
+                "lines": r.input.lines,
+                "damaged_lines": r.input.damaged,
+                "truncated": r.input.truncated,
+            })
+        }
+        ("clf" | "log", "mcap") => {
+            let r = carmen_to_bag(&args.input, output, args.strict, args.range_max)?;
+            for w in &r.input.warnings {
+                eprintln!("warning: {w}");
+            }
+            json!({
+                "input": args.input,
+                "output": output,
                 "scans": r.scans,
                 "odometry": r.odoms,
                 "tf": r.tfs,
@@ -86,7 +162,7 @@ pub fn run(args: &ConvertArgs, out: &mut dyn Write) -> Result<()> {
         ("mcap", "tum") => bag_odometry_to_tum(args)?,
         ("clf" | "log", "tum") => carmen_odometry_to_tum(args)?,
         _ => bail!(
-            "cannot convert .{in_ext} to .{out_ext}: use .clf/.log -> .mcap or .tum, .mcap -> .tum"
+            "cannot convert .{in_ext} to .{out_ext}: use .clf/.log -> .mcap, .tum or .cloilog, .mcap -> .tum"
         ),
     };
     let secs = started.elapsed().as_secs_f64();
@@ -166,7 +242,7 @@ fn bag_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
             "warning: odometry from several topics {odom_topics:?} is mixed; pick one with --odom-topic"
         );
     }
-    write_tum(&args.output, &poses)?;
+    write_tum(args.output_path(), &poses)?;
     let topics: serde_json::Map<String, serde_json::Value> = stats
         .topics
         .iter()
@@ -179,7 +255,7 @@ fn bag_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
         .collect();
     Ok(json!({
         "input": args.input,
-        "output": args.output,
+        "output": args.output_path(),
         "topics": topics,
         "odometry_topics": odom_topics,
         "odometry": odometry_summary(&poses),
@@ -209,10 +285,10 @@ fn carmen_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
     for w in &reader.stats().warnings {
         eprintln!("warning: {w}");
     }
-    write_tum(&args.output, &poses)?;
+    write_tum(args.output_path(), &poses)?;
     Ok(json!({
         "input": args.input,
-        "output": args.output,
+        "output": args.output_path(),
         "odometry": odometry_summary(&poses),
         "truncated": reader.stats().truncated,
     }))

@@ -8,6 +8,7 @@
 //! * [`frames`]: ROS 2 messages to the core's sensor frames.
 //! * [`tum`]: TUM and KITTI trajectories.
 //! * [`map_out`]: `map.pgm` + `map.yaml`, `map.png` with the trajectory, `result.mcap`.
+//! * [`cloilog`]: CARMEN logs to the firmware's compact binary sensor log.
 //! * [`cli`]: `cloi convert`.
 //! * [`atomic`]: atomic file output (temporary file, then rename), used by every writer.
 
@@ -16,6 +17,7 @@ pub mod bag;
 pub mod bag_read;
 pub mod carmen;
 pub mod cli;
+pub mod cloilog;
 pub mod convert;
 pub mod frames;
 pub mod map_out;
