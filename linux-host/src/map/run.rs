@@ -32,6 +32,7 @@ use super::input::{InputStats, InputStream, SensorEvent};
 use super::output::{
     compose_global_grid, peak_heap_bytes, write_tum, MapProgress, MapReport, SubmapView,
 };
+use crate::graph_io::{write_g2o, FileEdge, GraphFile};
 use crate::io::map_out::{write_map_png, write_map_server};
 
 /// Settings of one `cloi map` run.
@@ -412,39 +413,25 @@ fn drive(
     while mapper.step_backend(settings.backend_iterations_per_scan.max(1)) == BackendStep::Working {
     }
     let g = mapper.graph();
-    let mut g2o = String::new();
-    for (m, n) in mapper.nodes().iter().zip(g.nodes()) {
-        g2o.push_str(&format!(
-            "VERTEX_SE2 {} {} {} {}\n",
-            m.serial, n.pose.x, n.pose.y, n.pose.theta
-        ));
-    }
-    for e in g.edges() {
-        if e.kind == EdgeKind::Prior {
-            continue;
-        }
-        let (Some(a), Some(b)) = (
-            mapper.nodes().get(e.from.0 as usize),
-            mapper.nodes().get(e.to.0 as usize),
-        ) else {
-            continue;
-        };
-        let (z, i) = (&e.measurement, &e.information);
-        g2o.push_str(&format!(
-            "EDGE_SE2 {} {} {} {} {} {} {} {} {} {} {}\n",
-            a.serial,
-            b.serial,
-            z.x,
-            z.y,
-            z.theta,
-            i[(0, 0)],
-            i[(0, 1)],
-            i[(0, 2)],
-            i[(1, 1)],
-            i[(1, 2)],
-            i[(2, 2)]
-        ));
-    }
+    let file = GraphFile {
+        ids: mapper.nodes().iter().map(|m| i64::from(m.serial)).collect(),
+        poses: g.nodes().iter().map(|n| n.pose).collect(),
+        fixed: vec![false; g.node_count()],
+        has_vertices: true,
+        edges: g
+            .edges()
+            .iter()
+            .filter(|e| e.kind != EdgeKind::Prior)
+            .map(|e| FileEdge {
+                from: e.from.0 as usize,
+                to: e.to.0 as usize,
+                measurement: e.measurement,
+                information: e.information,
+            })
+            .collect(),
+        duplicate_pairs: 0,
+    };
+    let g2o = write_g2o(&file, &file.poses);
     Ok(Finished {
         keyframe_poses: mapper
             .nodes()
