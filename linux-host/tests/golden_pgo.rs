@@ -126,3 +126,19 @@ fn maxmix_manhattan_with_100_false_loops() {
         7,
     );
 }
+
+#[test]
+fn mitb_default_solver_reaches_the_lm_minimum() {
+    // Gauss-Newton alone stops at 770.66 (as g2o GN does); the default automatic strategy
+    // notices the implausible chi2 and reaches g2o LM's 526.33.
+    for init in ["file", "odometry"] {
+        let Some(path) = shared_file("g2o/MITb.g2o") else {
+            return;
+        };
+        let r = optimize_file(&args(&[path.to_str().unwrap(), "--init", init]))
+            .expect("optimize")
+            .report;
+        assert!(r.converged, "{r:?}");
+        assert!(r.final_chi2 <= 526.33 + 0.005, "MITb chi2 {}", r.final_chi2);
+    }
+}

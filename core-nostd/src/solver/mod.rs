@@ -59,7 +59,16 @@ pub enum Method {
     GaussNewton,
     /// Levenberg-Marquardt with Nielsen's damping update.
     LevenbergMarquardt,
+    /// Gauss-Newton, checked by a chi2 test: when it fails (diverges, hits the iteration limit
+    /// or ends with a chi2 above the 99.9 % quantile of its degrees of freedom, the sign of a
+    /// wrong basin), Levenberg-Marquardt runs again from the initial guess (no linear
+    /// initialisation, damping [`AUTO_LM_TAU`]) and the lower chi2 is kept. Graphs with robust
+    /// kernels, stages or a warm start are solved by Gauss-Newton alone.
+    Auto,
 }
+
+/// Levenberg-Marquardt's initial damping in the fallback of [`Method::Auto`].
+pub const AUTO_LM_TAU: f64 = 1e-3;
 
 /// Options of [`solve`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -308,6 +317,16 @@ pub fn solve(
         return fail(e, report);
     }
     let vars = ws.key.vars;
+    let auto = options.method == Method::Auto
+        && !gated
+        && stages == 1
+        && edges.iter().all(|e| e.robust == RobustKernel::None);
+    if auto {
+        // The initial guess, for the fallback (Gauss-Newton leaves `step` alone).
+        for (s, node) in ws.step.iter_mut().zip(nodes.iter()) {
+            *s = [node.pose.x, node.pose.y, node.pose.theta];
+        }
+    }
 
     // 2. Iterations.
     let (cost0, chi0) =
@@ -366,7 +385,7 @@ pub fn solve(
         }
     }
     let result = match options.method {
-        Method::GaussNewton => {
+        Method::GaussNewton | Method::Auto => {
             let mut r = Ok(());
             for stage in 1..=stages {
                 let limit = n * stage / stages;
@@ -395,7 +414,19 @@ pub fn solve(
             }
             r
         }
-        Method::LevenbergMarquardt => levenberg_marquardt(nodes, edges, ws, options, &mut report),
+        Method::LevenbergMarquardt => levenberg_marquardt(
+            nodes,
+            edges,
+            ws,
+            options,
+            &mut report,
+            options.max_iterations,
+        ),
+    };
+    let result = if auto && !passes_chi2_test(nodes, edges, ws, &result) {
+        auto_fallback(nodes, edges, ws, options, &mut report, result)
+    } else {
+        result
     };
     let (c, x) = linearize::evaluate(nodes, edges, ws.edge_trig, n, Warm::Off, ws.edge_flags);
     report.final_cost = c;
@@ -643,24 +674,112 @@ fn gauss_newton(
     Err(SolveError::MaxIterations)
 }
 
+/// Whether a Gauss-Newton outcome is statistically plausible: it stopped by a rule other than
+/// failure, and its chi2 is below the 99.9 % quantile of the chi2 distribution with the
+/// problem's degrees of freedom (3 per edge minus 3 per free node; Wilson-Hilferty
+/// approximation). A chi2 far above that quantile, on data whose information matrices are
+/// otherwise consistent, is the mark of a wrong local minimum.
+fn passes_chi2_test(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    ws: &SolverBuffers<'_>,
+    result: &Result<(), SolveError>,
+) -> bool {
+    match result {
+        Ok(()) => {}
+        Err(SolveError::Capacity { .. } | SolveError::InvalidGraph) => return true,
+        Err(_) => return false,
+    }
+    let dof = 3.0 * (edges.len() as f64 - ws.key.vars as f64);
+    if dof < 1.0 {
+        return true;
+    }
+    let (_, chi2) = linearize::evaluate(
+        nodes,
+        edges,
+        ws.edge_trig,
+        nodes.len(),
+        Warm::Off,
+        ws.edge_flags,
+    );
+    // 99.9 % point of the standard normal.
+    const Z: f64 = 3.090_232;
+    let h = 2.0 / (9.0 * dof);
+    let q = 1.0 - h + Z * libm::sqrt(h);
+    chi2.is_finite() && chi2 <= dof * q * q * q
+}
+
+/// Most Levenberg-Marquardt iterations of the fallback of [`Method::Auto`], as a multiple of
+/// `max_iterations`: from a raw guess its damped steps are shorter than Gauss-Newton's.
+const AUTO_LM_BUDGET: u32 = 2;
+
+/// The fallback of [`Method::Auto`]: Levenberg-Marquardt from the initial guess (kept in
+/// `ws.step`); the Gauss-Newton estimate waits in `ws.saved` and comes back when Levenberg-
+/// Marquardt does not reach a lower chi2.
+fn auto_fallback(
+    nodes: &mut [PoseNode],
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    options: &SolverOptions,
+    report: &mut SolveReport,
+    gn_result: Result<(), SolveError>,
+) -> Result<(), SolveError> {
+    let n = nodes.len();
+    let (_, gn_chi2) = linearize::evaluate(nodes, edges, ws.edge_trig, n, Warm::Off, ws.edge_flags);
+    let gn_report = *report;
+    for ((s, node), start) in ws
+        .saved
+        .iter_mut()
+        .zip(nodes.iter_mut())
+        .zip(ws.step.iter())
+    {
+        *s = node.pose;
+        node.pose.x = start[0];
+        node.pose.y = start[1];
+        node.pose.theta = start[2];
+    }
+    let (c, x) = linearize::evaluate(nodes, edges, ws.edge_trig, n, Warm::Off, ws.edge_flags);
+    report.final_cost = c;
+    report.final_chi2 = x;
+    report.converged = false;
+    let lm_options = SolverOptions {
+        lm_tau: AUTO_LM_TAU,
+        ..*options
+    };
+    let limit = report
+        .iterations
+        .saturating_add(AUTO_LM_BUDGET.saturating_mul(options.max_iterations));
+    let lm_result = levenberg_marquardt(nodes, edges, ws, &lm_options, report, limit);
+    let (_, lm_chi2) = linearize::evaluate(nodes, edges, ws.edge_trig, n, Warm::Off, ws.edge_flags);
+    if lm_chi2 < gn_chi2 || !gn_chi2.is_finite() {
+        return lm_result;
+    }
+    for (node, s) in nodes.iter_mut().zip(ws.saved.iter()) {
+        node.pose = *s;
+    }
+    *report = SolveReport {
+        iterations: report.iterations,
+        ..gn_report
+    };
+    gn_result
+}
+
+/// Levenberg-Marquardt until `report.iterations` reaches `limit`. The poses before a trial
+/// step wait in `ws.work` (free between factorizations).
 fn levenberg_marquardt(
     nodes: &mut [PoseNode],
     edges: &[PoseEdge],
     ws: &mut SolverBuffers<'_>,
     options: &SolverOptions,
     report: &mut SolveReport,
+    limit: u32,
 ) -> Result<(), SolveError> {
     let vars = ws.key.vars;
-    let n = nodes.len();
     let mut cost = report.final_cost;
     let mut lambda: f64 = -1.0;
     let mut nu = 2.0;
     let mut rejections = 0u32;
-    while report.iterations < options.max_iterations {
-        ws.saved[..n]
-            .iter_mut()
-            .zip(nodes.iter())
-            .for_each(|(s, node)| *s = node.pose);
+    while report.iterations < limit {
         let step = linear_step(
             nodes,
             edges,
@@ -693,6 +812,11 @@ fn levenberg_marquardt(
                 predicted += d[c] * (lambda * d[c] + mg[c]);
             }
         }
+        for (w, node) in ws.work.iter_mut().zip(nodes.iter()) {
+            w[0] = node.pose.x;
+            w[1] = node.pose.y;
+            w[2] = node.pose.theta;
+        }
         let largest = apply_step(nodes, ws.var_node, ws.rhs, vars);
         let (new_cost, new_chi2) = linearize::evaluate(
             nodes,
@@ -721,8 +845,10 @@ fn levenberg_marquardt(
                 return Ok(());
             }
         } else {
-            for (node, s) in nodes.iter_mut().zip(ws.saved.iter()) {
-                node.pose = *s;
+            for (node, w) in nodes.iter_mut().zip(ws.work.iter()) {
+                node.pose.x = w[0];
+                node.pose.y = w[1];
+                node.pose.theta = w[2];
             }
             lambda *= nu;
             nu *= 2.0;
