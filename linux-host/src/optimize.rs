@@ -338,18 +338,7 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
         Err(f) => (f.report, Some(f.error)),
     };
     let poses: Vec<Se2> = pg.nodes().iter().map(|n| n.pose).collect();
-    let rejected_loops = (args.robust == RobustMode::Maxmix).then(|| {
-        let all = pg.nodes();
-        pg.edges()
-            .iter()
-            .filter(|e| e.kind == EdgeKind::Loop)
-            .filter(|e| {
-                let c = e
-                    .chi2_of(&e.residual(&all[e.from.0 as usize].pose, &all[e.to.0 as usize].pose));
-                e.robust.weigh(c).0 < 1.0
-            })
-            .count()
-    });
+    let rejected_loops = (args.robust == RobustMode::Maxmix).then_some(rep.rejected_loops);
     let rmse_m = match &args.ground_truth {
         Some(p) => {
             let truth = graph_io::read_ground_truth(p)?;
