@@ -160,7 +160,7 @@ def main():
                 check=False, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
             )
             _, _, edges = read_g2o(init)
-            solvers = {"cloi GN": lambda p: run_cloi(args.cloi, p, "gn", os.path.join(tmp, "r.json"))}
+            solvers = {"cloi": lambda p: run_cloi(args.cloi, p, "auto", os.path.join(tmp, "r.json"))}
             solvers.update(peers)
             times = {k: [] for k in solvers}
             chi2 = {}
@@ -171,7 +171,7 @@ def main():
                     chi2[label] = chi2_g2o(poses, edges) if poses else float("nan")
             med = {k: statistics.median(v) for k, v in times.items()}
             peer_times = [med[k] for k in peers if not np.isnan(med[k])
-                          and np.isfinite(chi2[k]) and chi2[k] <= 1.001 * chi2["cloi GN"] + 0.01]
+                          and np.isfinite(chi2[k]) and chi2[k] <= 1.001 * chi2["cloi"] + 0.01]
             fastest_peer = min(peer_times) if peer_times else float("nan")
             for label in solvers:
                 rows.append((name, label, chi2[label], med[label], med[label] / fastest_peer))

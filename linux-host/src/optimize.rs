@@ -29,6 +29,9 @@ pub enum InitMode {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum SolverKind {
+    /// Gauss-Newton, then Levenberg-Marquardt from the initial guess when Gauss-Newton's
+    /// result fails a chi2 test (see `cloi_core::solver::Method::Auto`).
+    Auto,
     /// Gauss-Newton.
     Gn,
     /// Levenberg-Marquardt.
@@ -61,7 +64,7 @@ pub struct OptimizeArgs {
     #[arg(long, value_enum, default_value_t = InitMode::File)]
     pub init: InitMode,
     /// Iteration scheme.
-    #[arg(long, value_enum, default_value_t = SolverKind::Gn)]
+    #[arg(long, value_enum, default_value_t = SolverKind::Auto)]
     pub solver: SolverKind,
     /// Robust model for loop closures.
     #[arg(long, value_enum, default_value_t = RobustMode::None)]
@@ -314,6 +317,7 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
     }
     let options = SolverOptions {
         method: match args.solver {
+            SolverKind::Auto => Method::Auto,
             SolverKind::Gn => Method::GaussNewton,
             SolverKind::Lm => Method::LevenbergMarquardt,
         },
@@ -334,18 +338,7 @@ pub fn optimize_file(args: &OptimizeArgs) -> Result<Optimized> {
         Err(f) => (f.report, Some(f.error)),
     };
     let poses: Vec<Se2> = pg.nodes().iter().map(|n| n.pose).collect();
-    let rejected_loops = (args.robust == RobustMode::Maxmix).then(|| {
-        let all = pg.nodes();
-        pg.edges()
-            .iter()
-            .filter(|e| e.kind == EdgeKind::Loop)
-            .filter(|e| {
-                let c = e
-                    .chi2_of(&e.residual(&all[e.from.0 as usize].pose, &all[e.to.0 as usize].pose));
-                e.robust.weigh(c).0 < 1.0
-            })
-            .count()
-    });
+    let rejected_loops = (args.robust == RobustMode::Maxmix).then_some(rep.rejected_loops);
     let rmse_m = match &args.ground_truth {
         Some(p) => {
             let truth = graph_io::read_ground_truth(p)?;

@@ -78,6 +78,31 @@ impl RobustKernel {
         }
     }
 
+    /// Like [`RobustKernel::weigh`], but a max-mixture takes its widest component (the
+    /// smallest information scale, the null hypothesis) whatever its likelihood; other models
+    /// weigh as usual.
+    #[inline]
+    pub fn weigh_widest(&self, chi2: f64) -> (f64, f64) {
+        match *self {
+            RobustKernel::MaxMixture { components, count } => {
+                let used = (count as usize).clamp(1, MAX_MIXTURE_COMPONENTS);
+                let mut widest = components[0];
+                for comp in components.iter().take(used) {
+                    if comp.info_scale < widest.info_scale {
+                        widest = *comp;
+                    }
+                }
+                let c = widest.cost(chi2);
+                if c.is_finite() {
+                    (widest.info_scale as f64, c)
+                } else {
+                    (1.0, chi2)
+                }
+            }
+            _ => self.weigh(chi2),
+        }
+    }
+
     /// For a residual of squared length `chi2`: the factor that scales the edge's information
     /// in this iteration's normal equations, and the edge's robust cost.
     #[inline]

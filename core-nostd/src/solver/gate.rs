@@ -6,21 +6,26 @@
 //! uncertainty of that prediction*: chaining the odometry edges gives the relative pose `T` of
 //! the pair and, by first-order compounding, its covariance `S_T`; a loop with measurement `z`
 //! and covariance `S_z` passes when `(T - z)^T (S_T + S_z)^-1 (T - z)` is below a chi2
-//! threshold. The warm start then runs in three phases: a few iterations with only the passed
-//! loops, each weighted by dynamic covariance scaling of its gate distance (a loop that odometry
-//! predicts well pulls harder); then dynamic covariance scaling of every max-mixture loop by its
-//! current residual until that settles; then the free max-mixture solve, where every edge picks
-//! its most likely component.
+//! threshold. When odometry drifts a lot that covariance is wide and many false loops pass too,
+//! so a passed loop must also agree with at least [`SUPPORT_MIN`] neighbouring passed loops
+//! ([`support_loops`], short cycles through two loops and two odometry stretches). The warm
+//! start then runs in three phases: a few iterations with only the supported loops, each
+//! weighted by dynamic covariance scaling of its gate distance (a loop that odometry predicts
+//! well pulls harder); then dynamic covariance scaling of the same loops by their current
+//! residual until that settles; then the free max-mixture solve, where every edge picks its most
+//! likely component, except that a loop the warm start did not use is held on its null
+//! component until it is consistent with the map ([`unit_variance`],
+//! [`admit_by_innovation`]).
 //!
 //! The chain's covariance in the world frame is kept per node: `S_b = J_a S_a J_a^T +
 //! J_z S_z J_z^T`, so the relative covariance of nodes `a < b` is recovered in O(1) as
 //! `R_a^T (S_b - J S_a J^T) R_a` with `J` the Jacobian of `P_a (+) T` with respect to `P_a`.
 
-use super::cholesky::{chol_inverse, mul_v};
-use super::linearize::info_block;
+use super::cholesky::{chol_inverse, mul_v, solve_in_place};
+use super::linearize::{edge_residual, info_block, quad, relative_residual};
 use super::workspace::{Block, SolverBuffers};
 use crate::geom::{wrap_angle, Se2};
-use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
+use crate::graph::{EdgeKind, PoseEdge, PoseNode, RobustKernel};
 
 const NONE: u32 = u32::MAX;
 /// Bit of `edge_flags`: the gate passed this edge.
@@ -159,6 +164,7 @@ pub(crate) fn gate_loops(
         }
     }
     let mut passed = 0;
+    let [_, segment, ..] = &ws.scratch;
     for (e, flag) in edges.iter().zip(ws.edge_flags.iter_mut()) {
         let mm = matches!(e.robust, RobustKernel::MaxMixture { .. }) && e.kind == EdgeKind::Loop;
         if !mm {
@@ -170,34 +176,11 @@ pub(crate) fn gate_loops(
         if i >= n || j >= n || segment[i] != segment[j] {
             continue;
         }
-        let Some(cov_z) = spd_inverse(&info_block(e)) else {
+        let Some((a, b, z, cov_z)) = oriented(e) else {
             continue;
         };
-        // Measurement from the earlier node to the later one.
-        let (a, b, z, cov_z) = if i < j {
-            (i, j, e.measurement, cov_z)
-        } else {
-            let ji = inverse_jacobian(&e.measurement);
-            (j, i, e.measurement.inverse(), sandwich(&ji, &cov_z))
-        };
-        let (pa, pb) = (ws.saved[a], ws.saved[b]);
-        let t = pa.between(&pb);
-        let (ja, rot) = compose_jacobians(&pa, &t);
-        let mut grown = ws.work[b];
-        for (g, p) in grown.iter_mut().zip(sandwich(&ja, &ws.work[a])) {
-            *g -= p;
-        }
-        let cov_t = sandwich(&transpose(&rot), &grown);
-        let mut total = add(&cov_t, &transpose(&cov_t));
-        for (v, c) in total.iter_mut().zip(cov_z) {
-            *v = 0.5 * *v + c;
-        }
-        let d = [t.x - z.x, t.y - z.y, wrap_angle(t.theta - z.theta)];
-        let maha = chol_inverse(&total).map(|li| {
-            let y = mul_v(&li, &d);
-            y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
-        });
-        if let Some(m) = maha {
+        let (t, cov_t) = chain_between(ws.saved, ws.work, a, b);
+        if let Some(m) = mismatch(&t, &add(&cov_t, &cov_z), &z) {
             if m <= chi2 {
                 // Dynamic covariance scaling on the gate's distance: a loop that odometry
                 // predicts well pulls harder than one at the edge of the gate.
@@ -211,9 +194,286 @@ pub(crate) fn gate_loops(
     passed
 }
 
-/// Marks every edge as passed (the DCS phase of the warm start weighs all loops).
-pub(crate) fn pass_all(edges: &[PoseEdge], ws: &mut SolverBuffers<'_>) {
-    for f in ws.edge_flags.iter_mut().take(edges.len()) {
-        *f = (*f & 1) | GATE_PASSED;
+/// Measurement of a relative edge from its earlier node to its later one: `(a, b, z, cov_z)`
+/// with `a < b`; `None` for a degenerate information matrix.
+fn oriented(e: &PoseEdge) -> Option<(usize, usize, Se2, Block)> {
+    let cov_z = spd_inverse(&info_block(e))?;
+    let (i, j) = (e.from.0 as usize, e.to.0 as usize);
+    Some(if i < j {
+        (i, j, e.measurement, cov_z)
+    } else {
+        let ji = inverse_jacobian(&e.measurement);
+        (j, i, e.measurement.inverse(), sandwich(&ji, &cov_z))
+    })
+}
+
+/// The odometry chain's relative pose from node `a` to node `b` (same segment, either order)
+/// and its covariance in `a`'s frame, from the chained poses and world covariances.
+fn chain_between(poses: &[Se2], covs: &[Block], a: usize, b: usize) -> (Se2, Block) {
+    if a == b {
+        return (Se2::IDENTITY, [0.0; 9]);
     }
+    let (lo, hi) = (a.min(b), a.max(b));
+    let (pa, pb) = (poses[lo], poses[hi]);
+    let t = pa.between(&pb);
+    let (ja, rot) = compose_jacobians(&pa, &t);
+    let mut grown = covs[hi];
+    for (g, p) in grown.iter_mut().zip(sandwich(&ja, &covs[lo])) {
+        *g -= p;
+    }
+    let c = sandwich(&transpose(&rot), &grown);
+    let mut cov = add(&c, &transpose(&c));
+    for v in cov.iter_mut() {
+        *v *= 0.5;
+    }
+    if a < b {
+        (t, cov)
+    } else {
+        let ji = inverse_jacobian(&t);
+        (t.inverse(), sandwich(&ji, &cov))
+    }
+}
+
+/// Squared Mahalanobis distance between a predicted relative pose `t` (with the summed
+/// covariance `total` of prediction and measurement) and a measurement `z`.
+fn mismatch(t: &Se2, total: &Block, z: &Se2) -> Option<f64> {
+    let d = [t.x - z.x, t.y - z.y, wrap_angle(t.theta - z.theta)];
+    chol_inverse(total).map(|li| {
+        let y = mul_v(&li, &d);
+        y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
+    })
+}
+
+/// Two loop closures support each other when both ends of one lie within this many nodes of
+/// the other's ends: the cycle they close with the two short odometry stretches between their
+/// ends is then tight enough to test (a long cycle inherits the odometry's drift and tests
+/// nothing).
+pub(crate) const SUPPORT_WINDOW: usize = 5;
+/// A gated loop keeps its place in the warm start only with at least this many consistent
+/// neighbours (see [`support_loops`]).
+pub(crate) const SUPPORT_MIN: u32 = 2;
+
+const LINK_BITS: u32 = 24;
+const LINK_NONE: u32 = (1 << LINK_BITS) - 1;
+
+/// Pairwise consistency of the gated loops (a local form of pairwise consistency
+/// maximization): for two gated loops `(a1, b1, z1)` and `(a2, b2, z2)` with `|a1 - a2|` and
+/// `|b1 - b2|` at most [`SUPPORT_WINDOW`], the path `a2 -> a1` (odometry), `a1 -> b1` (`z1`),
+/// `b1 -> b2` (odometry) predicts `z2`; with the compounded covariance of that path plus
+/// `z2`'s own, a squared Mahalanobis distance within `chi2` makes the two consistent. True
+/// loops come in runs along a revisited stretch and agree with each other; a false loop
+/// rarely has a neighbour at all, let alone one that agrees. Gated loops with fewer than
+/// [`SUPPORT_MIN`] consistent neighbours lose [`GATE_PASSED`]; the max-mixture phase decides on
+/// them later, at a consistent estimate.
+///
+/// Uses `scratch[2]` (bucket heads per lower end) and `edge_slot` (bucket links and counts), so
+/// it invalidates the cached analysis. Expects the chain poses in `saved`, world covariances
+/// in `work` and segments in `scratch[1]` (as [`gate_loops`] leaves them). Returns the gated
+/// loops that keep their place.
+pub(crate) fn support_loops(
+    n: usize,
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    chi2: f64,
+) -> usize {
+    ws.key.valid = false;
+    let gated = |e: &PoseEdge, f: u8| {
+        f & GATE_PASSED != 0
+            && e.kind == EdgeKind::Loop
+            && matches!(e.robust, RobustKernel::MaxMixture { .. })
+    };
+    if edges.len() >= LINK_NONE as usize {
+        return edges
+            .iter()
+            .zip(ws.edge_flags.iter())
+            .filter(|(e, &f)| gated(e, f))
+            .count();
+    }
+    let [_, segment, head, ..] = &mut ws.scratch;
+    for h in head.iter_mut().take(n) {
+        *h = LINK_NONE;
+    }
+    for (k, (e, &f)) in edges.iter().zip(ws.edge_flags.iter()).enumerate().rev() {
+        ws.edge_slot[k] = LINK_NONE;
+        if gated(e, f) {
+            let a = (e.from.0 as usize).min(e.to.0 as usize);
+            ws.edge_slot[k] = head[a];
+            head[a] = k as u32;
+        }
+    }
+    let count_of = |slot: u32| slot >> LINK_BITS;
+    let link_of = |slot: u32| slot & LINK_NONE;
+    for a1 in 0..n {
+        let mut x = head[a1];
+        while x != LINK_NONE {
+            let ex = &edges[x as usize];
+            let Some((_, b1, z1, c1)) = oriented(ex) else {
+                x = link_of(ws.edge_slot[x as usize]);
+                continue;
+            };
+            for a2 in a1..(a1 + SUPPORT_WINDOW + 1).min(n) {
+                if segment[a2] != segment[a1] {
+                    break;
+                }
+                // Within the same bucket, only the loops after `x`.
+                let mut y = if a2 == a1 {
+                    link_of(ws.edge_slot[x as usize])
+                } else {
+                    head[a2]
+                };
+                while y != LINK_NONE {
+                    let next = link_of(ws.edge_slot[y as usize]);
+                    let ey = &edges[y as usize];
+                    if let Some((_, b2, z2, c2)) = oriented(ey) {
+                        if b1.abs_diff(b2) <= SUPPORT_WINDOW && segment[b1] == segment[b2] {
+                            let (ta, ca) = chain_between(ws.saved, ws.work, a2, a1);
+                            let (tb, cb) = chain_between(ws.saved, ws.work, b1, b2);
+                            let mut p = Se2::IDENTITY;
+                            let mut cov: Block = [0.0; 9];
+                            for (q, cq) in [(ta, ca), (z1, c1), (tb, cb)] {
+                                let (jp, jq) = compose_jacobians(&p, &q);
+                                cov = add(&sandwich(&jp, &cov), &sandwich(&jq, &cq));
+                                p = p.compose(&q);
+                            }
+                            if mismatch(&p, &add(&cov, &c2), &z2).is_some_and(|m| m <= chi2) {
+                                for k in [x, y] {
+                                    let s = ws.edge_slot[k as usize];
+                                    let c = (count_of(s) + 1).min(255);
+                                    ws.edge_slot[k as usize] = link_of(s) | (c << LINK_BITS);
+                                }
+                            }
+                        }
+                    }
+                    y = next;
+                }
+            }
+            x = link_of(ws.edge_slot[x as usize]);
+        }
+    }
+    let mut kept = 0;
+    for (k, e) in edges.iter().enumerate() {
+        let f = ws.edge_flags[k];
+        if !gated(e, f) {
+            continue;
+        }
+        if count_of(ws.edge_slot[k]) >= SUPPORT_MIN {
+            kept += 1;
+        } else {
+            ws.edge_flags[k] = f & 1;
+        }
+    }
+    kept
+}
+
+/// The a posteriori variance of unit weight of the edges that the warm start uses (every
+/// edge but the max-mixture loops without [`GATE_PASSED`]): their chi2 at the current estimate
+/// over their redundancy (3 per edge minus 3 per free node), at most 1 (the test never gets
+/// looser than the stated information) and 1 without redundancy.
+pub(crate) fn unit_variance(nodes: &[PoseNode], edges: &[PoseEdge], ws: &SolverBuffers<'_>) -> f64 {
+    let mut chi2 = 0.0;
+    let mut count = 0usize;
+    for ((e, t), &f) in edges
+        .iter()
+        .zip(ws.edge_trig.iter())
+        .zip(ws.edge_flags.iter())
+    {
+        let mm = e.kind == EdgeKind::Loop && matches!(e.robust, RobustKernel::MaxMixture { .. });
+        if mm && f & GATE_PASSED == 0 {
+            continue;
+        }
+        if let Some(r) = edge_residual(nodes, e, t) {
+            chi2 += quad(&info_block(e), &r);
+            count += 1;
+        }
+    }
+    let dof = 3.0 * (count as f64 - ws.key.vars as f64);
+    let v = chi2 / dof;
+    if dof >= 1.0 && v.is_finite() {
+        v.clamp(1e-9, 1.0)
+    } else {
+        1.0
+    }
+}
+
+/// The innovation test of the max-mixture loops that the admission gate
+/// ([`super::linearize::Warm::Admit`]) holds back: loops without [`GATE_PASSED`] whose chi2
+/// at the current estimate is above `chi2` although their max-mixture would pick a component
+/// of useful weight. Such a loop is left out of the system, so the factor in the workspace
+/// (from the last iteration) gives the covariance of its predicted residual, `J H^-1 J^T`
+/// (three solves); the loop is admitted (marked [`GATE_PASSED`], free to follow its
+/// max-mixture from then on) when `e^T (J H^-1 J^T + Omega^-1)^-1 e <= chi2`. A loop that
+/// closes a stretch which nothing else constrains passes; a false loop between well-known
+/// places does not. Returns the number admitted.
+pub(crate) fn admit_by_innovation(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    chi2: f64,
+) -> usize {
+    let vars = ws.key.vars;
+    let mut admitted = 0;
+    for (k, e) in edges.iter().enumerate() {
+        let f = ws.edge_flags[k];
+        if f & GATE_PASSED != 0
+            || e.kind != EdgeKind::Loop
+            || !matches!(e.robust, RobustKernel::MaxMixture { .. })
+        {
+            continue;
+        }
+        let (i, j) = (e.from.0 as usize, e.to.0 as usize);
+        let (Some(ni), Some(nj)) = (nodes.get(i), nodes.get(j)) else {
+            continue;
+        };
+        let (ci, si) = (libm::cos(ni.pose.theta), libm::sin(ni.pose.theta));
+        let [cz, sz] = ws.edge_trig[k];
+        let (r, [ca, sa, gx, gy]) =
+            relative_residual(&ni.pose, ci, si, &nj.pose, &e.measurement, cz, sz);
+        let info = info_block(e);
+        let c = quad(&info, &r);
+        if c <= chi2 || e.robust.weigh(c).0 < super::INACTIVE_SCALE {
+            continue;
+        }
+        let Some(cov_z) = spd_inverse(&info) else {
+            continue;
+        };
+        let jj: Block = [ca, sa, 0.0, -sa, ca, 0.0, 0.0, 0.0, 1.0];
+        let ji: Block = [-ca, -sa, gx, sa, -ca, gy, 0.0, 0.0, -1.0];
+        let (pi, pj) = (ws.node_var[i], ws.node_var[j]);
+        let mut pred: Block = [0.0; 9];
+        for col in 0..3 {
+            for v in ws.rhs.iter_mut().take(vars) {
+                *v = [0.0; 3];
+            }
+            // Column `col` of J^T, by variable position.
+            for (p, jac) in [(pi, &ji), (pj, &jj)] {
+                if let Some(v) = ws.rhs.get_mut(p as usize).filter(|_| (p as usize) < vars) {
+                    for (d, x) in v.iter_mut().enumerate() {
+                        *x += jac[3 * col + d];
+                    }
+                }
+            }
+            solve_in_place(vars, ws.col_end, ws.rows, ws.values, ws.diag, ws.rhs);
+            for (p, jac) in [(pi, &ji), (pj, &jj)] {
+                if let Some(x) = ws.rhs.get(p as usize).filter(|_| (p as usize) < vars) {
+                    let y = mul_v(jac, x);
+                    for row in 0..3 {
+                        pred[3 * row + col] += y[row];
+                    }
+                }
+            }
+        }
+        let mut total = add(&pred, &transpose(&pred));
+        for (v, cz) in total.iter_mut().zip(cov_z) {
+            *v = 0.5 * *v + cz;
+        }
+        let m = chol_inverse(&total).map(|li| {
+            let y = mul_v(&li, &r);
+            y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
+        });
+        if m.is_some_and(|m| m <= chi2) {
+            ws.edge_flags[k] = f | GATE_PASSED;
+            admitted += 1;
+        }
+    }
+    admitted
 }

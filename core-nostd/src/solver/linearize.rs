@@ -117,7 +117,7 @@ pub(crate) fn evaluate(
         if !within(edge, limit) {
             continue;
         }
-        if warm != Warm::Off
+        if matches!(warm, Warm::Nominal | Warm::Dcs)
             && flags
                 .get(k)
                 .is_some_and(|f| f & super::gate::GATE_PASSED == 0)
@@ -286,10 +286,14 @@ pub(crate) fn assemble(
 }
 
 /// How max-mixture edges are weighted during the warm start of a robust solve.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub(crate) enum Warm {
     /// By their own model (no warm start).
     Off,
+    /// By their own model, except that a max-mixture loop the warm start did not use (no
+    /// [`super::gate::GATE_PASSED`]) stays on its widest component while its chi2 exceeds this
+    /// quantile: a loop first has to be consistent with the map at this confidence.
+    Admit(f64),
     /// Nominal component (the loops that passed the odometry gate).
     Nominal,
     /// Dynamic covariance scaling (Agarwal et al.): information scaled by `s^2` with
@@ -299,11 +303,18 @@ pub(crate) enum Warm {
 
 /// The robust weight and cost of an edge under `warm`.
 #[inline(always)]
-fn weigh(edge: &PoseEdge, chi2: f64, warm: Warm, flag: u8) -> (f64, f64) {
+pub(crate) fn weigh(edge: &PoseEdge, chi2: f64, warm: Warm, flag: u8) -> (f64, f64) {
     if warm == Warm::Off || !matches!(edge.robust, crate::graph::RobustKernel::MaxMixture { .. }) {
         return edge.robust.weigh(chi2);
     }
     match warm {
+        Warm::Admit(limit) => {
+            if flag & super::gate::GATE_PASSED == 0 && chi2 > limit {
+                edge.robust.weigh_widest(chi2)
+            } else {
+                edge.robust.weigh(chi2)
+            }
+        }
         Warm::Dcs => {
             let s = (2.0 / (1.0 + chi2)).min(1.0);
             (s * s, s * s * chi2)

@@ -269,6 +269,111 @@ fn huber_and_cauchy_downweight_a_false_loop() {
     }
 }
 
+#[test]
+fn auto_is_gauss_newton_on_a_consistent_graph() {
+    let mut s1 = GraphStorage::new();
+    let mut s2 = GraphStorage::new();
+    let mut g1 = circle(&mut s1, 32, 0.05, 0.02);
+    let mut g2 = circle(&mut s2, 32, 0.05, 0.02);
+    let mut ws = Ws::new();
+    let gn = solve(&mut g1, &mut ws.buffers(), &SolverOptions::default()).unwrap();
+    let auto = SolverOptions {
+        method: Method::Auto,
+        ..SolverOptions::default()
+    };
+    let r = solve(&mut g2, &mut ws.buffers(), &auto).unwrap();
+    assert_eq!(gn.iterations, r.iterations, "no fallback");
+    assert_eq!(gn.final_chi2, r.final_chi2);
+    for (a, b) in g1.nodes().iter().zip(g2.nodes()) {
+        assert_eq!(a.pose, b.pose);
+    }
+}
+
+#[test]
+fn auto_falls_back_and_never_ends_worse_than_gauss_newton() {
+    // Noise far above what the information claims: every minimum fails the chi2 test, so the
+    // fallback runs; its result replaces Gauss-Newton's only when it is lower.
+    let mut s1 = GraphStorage::new();
+    let mut s2 = GraphStorage::new();
+    let mut g1 = circle(&mut s1, 32, 0.3, 0.02);
+    let mut g2 = circle(&mut s2, 32, 0.3, 0.02);
+    let mut ws = Ws::new();
+    let gn = solve(&mut g1, &mut ws.buffers(), &SolverOptions::default()).unwrap();
+    let auto = SolverOptions {
+        method: Method::Auto,
+        ..SolverOptions::default()
+    };
+    let r = solve(&mut g2, &mut ws.buffers(), &auto).unwrap();
+    assert!(r.iterations > gn.iterations, "the fallback ran: {r:?}");
+    assert!(
+        r.final_chi2 <= gn.final_chi2 * (1.0 + 1e-9),
+        "{r:?} vs {gn:?}"
+    );
+    assert!((g2.chi2() - r.final_chi2).abs() <= 1e-9 * r.final_chi2);
+}
+
+#[test]
+fn max_mixture_rejects_many_false_loops_without_fill() {
+    const FALSE_LOOPS: usize = 30;
+    let mm = RobustKernel::max_mixture_with_null(1e-3, 1e-6);
+    let opts = SolverOptions {
+        gate_chi2: 16.27,
+        ..SolverOptions::default()
+    };
+    let mut clean_storage = GraphStorage::new();
+    let mut clean = circle(&mut clean_storage, 32, 0.01, 0.01);
+    for e in clean.edges_mut() {
+        if e.kind == EdgeKind::Loop {
+            e.robust = mm;
+        }
+    }
+    let mut ws = Ws::new();
+    let reference = solve(&mut clean, &mut ws.buffers(), &opts).unwrap();
+    assert_eq!(reference.rejected_loops, 0);
+    let mut storage = GraphStorage::new();
+    let mut g = circle(&mut storage, 32, 0.01, 0.01);
+    let info = Info3::new(50.0, 5.0, 0.0, 5.0, 80.0, 1.0, 0.0, 1.0, 300.0);
+    // A fixed linear congruential sequence: random node pairs and relative poses.
+    let mut state: u64 = 12345;
+    let mut next = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let mut added = 0;
+    while added < FALSE_LOOPS {
+        let a = (next() * 32.0) as u32;
+        let b = (next() * 32.0) as u32;
+        let z = Se2::new(
+            6.0 * next() - 3.0,
+            6.0 * next() - 3.0,
+            (2.0 * next() - 1.0) * core::f64::consts::PI,
+        );
+        if a.abs_diff(b) <= 1 {
+            continue;
+        }
+        let mut e = PoseEdge::new(NodeId(a), NodeId(b), z, info, EdgeKind::Loop);
+        e.robust = mm;
+        g.add_edge(e).unwrap();
+        added += 1;
+    }
+    for e in g.edges_mut() {
+        if e.kind == EdgeKind::Loop {
+            e.robust = mm;
+        }
+    }
+    let r = solve(&mut g, &mut ws.buffers(), &opts).unwrap();
+    assert_eq!(r.rejected_loops, FALSE_LOOPS, "{r:?}");
+    assert_eq!(
+        r.factor_blocks, reference.factor_blocks,
+        "no fill from false loops"
+    );
+    for (a, b) in g.nodes().iter().zip(clean.nodes()) {
+        assert!(libm::hypot(a.pose.x - b.pose.x, a.pose.y - b.pose.y) < 1e-6);
+    }
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(24))]
     #[test]
