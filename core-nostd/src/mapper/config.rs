@@ -113,7 +113,7 @@ impl Default for LoopConfig {
             angle_min: 0.2,
             angle_max: 0.6,
             min_score: 0.55,
-            min_fitness: 0.7,
+            min_fitness: 0.5,
             max_rms: 0.08,
             agree_xy: 0.05,
             agree_theta: 0.02,
