@@ -44,10 +44,15 @@ fn run() -> Result<()> {
     let path = PathBuf::from(args.get(1).context("usage: mapper_eval LOG.clf [MAX]")?);
     let max: usize = args.get(2).map_or(Ok(usize::MAX), |s| s.parse())?;
     let mut res = Box::new(OfficeResources::new());
-    let cfg = MapperConfig::default();
+    let mut cfg = MapperConfig::default();
+    if let Ok(over) = std::env::var("CFG") {
+        apply_overrides(&mut cfg, &over)?;
+    }
     let mut mapper = res.mapper(cfg).map_err(|e| anyhow::anyhow!("{e}"))?;
     let mut offset_x = 0.0;
     let mut records: Vec<(i64, u32, Se2, Se2, Se2)> = Vec::new();
+    let keep_order = std::env::var_os("STAMP_AS_IS").is_none();
+    let mut fed = i64::MIN;
     let t0 = Instant::now();
     let (mut first, mut last) = (None, 0i64);
     for rec in CarmenReader::open(&path, false)? {
@@ -59,21 +64,38 @@ fn run() -> Result<()> {
                 if records.len() >= max {
                     break;
                 }
+                // Old CARMEN logs (intel) have IPC time stamps that jitter backwards while
+                // the file order is the true order (the odometry in the lines is monotonic):
+                // the mapper gets a stamp made increasing, the evaluation the original one.
+                let stamp = if keep_order {
+                    l.stamp_ns.max(fed + 1_000)
+                } else {
+                    l.stamp_ns
+                };
+                fed = fed.max(stamp);
                 if let Some((x, y, t)) = l.odom_pose {
-                    let _ = mapper.push_odometry(l.stamp_ns, Se2::new(x, y, t));
+                    let _ = mapper.push_odometry(stamp, Se2::new(x, y, t));
                 }
                 let scan = ScanInput {
-                    stamp: l.stamp_ns,
+                    stamp,
                     ranges: &l.ranges,
                     geometry: BeamGeometry {
                         angle_min: l.angle_min,
-                        angle_increment: l.angle_increment,
+                        angle_increment: match std::env::var("FOV_DEG") {
+                            // Development check of the beam-angle convention of old logs.
+                            Ok(v) => {
+                                v.parse::<f32>().unwrap_or(180.0).to_radians()
+                                    / (l.ranges.len().max(2) - 1) as f32
+                            }
+                            Err(_) => l.angle_increment,
+                        },
                         range_min: 0.05,
                         range_max: l.max_range.unwrap_or(80.0),
                     },
                     mounting: Se2::new(offset_x, 0.0, 0.0),
                 };
-                if let Ok(out) = mapper.push_scan(&scan, false) {
+                if let Ok(mut out) = mapper.push_scan(&scan, false) {
+                    out.stamp = l.stamp_ns;
                     first.get_or_insert(l.stamp_ns);
                     last = l.stamp_ns;
                     let ref_f = mapper
@@ -121,6 +143,13 @@ fn run() -> Result<()> {
     let fe = PlanarTrajectory {
         poses: records.iter().map(|r| (r.0, r.4)).collect(),
     };
+    // The relation lookup needs increasing stamps.
+    let mut fin = fin;
+    let mut gpe = gpe;
+    let mut fe = fe;
+    for t in [&mut fin, &mut gpe, &mut fe] {
+        t.poses.sort_by_key(|p| p.0);
+    }
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
     let refp = path.with_file_name(name.replace(".clf", ".gfs_reference_poses.txt"));
     if let Ok(reference) = PlanarTrajectory::load_reference(&refp) {
@@ -131,6 +160,29 @@ fn run() -> Result<()> {
                 "{n}: trans {:.4} +- {:.4} m rot {:.3} deg pairs {} missing {}",
                 s.trans_mean_m, s.trans_std_m, s.rot_mean_deg, s.pairs_used, s.pairs_missing
             );
+        }
+    }
+    if let Ok(dump) = std::env::var("DUMP") {
+        // Development dump: stamp, front-end pose, final pose.
+        use std::io::Write;
+        let mut f = std::io::BufWriter::new(std::fs::File::create(dump)?);
+        let mut rows: Vec<_> = records
+            .iter()
+            .filter_map(|r| Some((r, mapper.keyframe_pose(r.1)?.compose(&r.2))))
+            .collect();
+        rows.sort_by_key(|(r, _)| r.0);
+        for (r, p) in rows {
+            writeln!(
+                f,
+                "{:.6} {:.5} {:.5} {:.6} {:.5} {:.5} {:.6}",
+                r.0 as f64 * 1e-9,
+                r.4.x,
+                r.4.y,
+                r.4.theta,
+                p.x,
+                p.y,
+                p.theta
+            )?;
         }
     }
     if std::env::var_os("LOOPS").is_some() {
@@ -206,5 +258,55 @@ fn run() -> Result<()> {
         jump = jump.max((g.x - f.x).hypot(g.y - f.y));
     }
     println!("gpe max jump {jump:.4} m");
+    Ok(())
+}
+
+/// Development overrides of a few parameters: `CFG="name=value,name=value"` (A/B runs
+/// without a rebuild; the defaults are what counts).
+fn apply_overrides(cfg: &mut MapperConfig, spec: &str) -> Result<()> {
+    for kv in spec.split(',').filter(|s| !s.is_empty()) {
+        let (k, v) = kv.split_once('=').context("CFG entries are name=value")?;
+        let f: f64 = v.parse().with_context(|| format!("bad value in {kv}"))?;
+        match k {
+            "local_from_submaps" => cfg.local_from_submaps = f != 0.0,
+            "local_min_log_odds" => cfg.local_min_log_odds = f as i8,
+            "local_reset" => cfg.local_reset = f,
+            "local_radius" => cfg.local_radius = f as f32,
+            "submap_length" => cfg.submap_length = f,
+            "min_fitness" => cfg.min_fitness = f as f32,
+            "turn_reseed" => cfg.turn_reseed = f,
+            "kf_distance" => cfg.keyframe.distance = f,
+            "kf_angle" => cfg.keyframe.angle = f,
+            "icp_huber" => cfg.icp.huber = f,
+            "icp_corr" => cfg.icp.max_correspondence = f as f32,
+            "icp_degeneracy" => cfg.icp.degeneracy_ratio = f,
+            "loop_every" => cfg.loops.every = f as u32,
+            "loop_gap" => cfg.loops.min_keyframe_gap = f as u32,
+            "loop_sigmas" => cfg.loops.sigmas = f,
+            "loop_window_min" => cfg.loops.window_min = f,
+            "loop_window_max" => cfg.loops.window_max = f,
+            "loop_angle_min" => cfg.loops.angle_min = f,
+            "loop_angle_max" => cfg.loops.angle_max = f,
+            "loop_min_score" => cfg.loops.min_score = f as f32,
+            "loop_min_fitness" => cfg.loops.min_fitness = f as f32,
+            "loop_max_rms" => cfg.loops.max_rms = f,
+            "loop_agree_xy" => cfg.loops.agree_xy = f,
+            "loop_agree_theta" => cfg.loops.agree_theta = f,
+            "loop_candidates" => cfg.loops.max_candidates = f as u8,
+            "loop_sigma_xy" => cfg.loops.min_sigma[0] = f,
+            "loop_sigma_theta" => cfg.loops.min_sigma[1] = f,
+            "null_weight" => cfg.loops.null_weight = f as f32,
+            "gate_chi2" => cfg.backend.gate_chi2 = f,
+            "gpe_huber" => cfg.gpe.huber = f,
+            "gpe_process_xy" => cfg.gpe.process_sigma[0] = f,
+            "gpe_process_theta" => cfg.gpe.process_sigma[1] = f,
+            "backend_every" => cfg.backend.every_keyframes = f as u32,
+            "backend_iterations" => cfg.backend.max_iterations = f as u32,
+            "var_xy_per_m" => cfg.noise.var_xy_per_m = f,
+            "var_theta_per_m" => cfg.noise.var_theta_per_m = f,
+            "var_theta_per_rad" => cfg.noise.var_theta_per_rad = f,
+            _ => anyhow::bail!("unknown CFG parameter {k}"),
+        }
+    }
     Ok(())
 }

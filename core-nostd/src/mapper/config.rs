@@ -113,7 +113,7 @@ impl Default for LoopConfig {
             angle_min: 0.2,
             angle_max: 0.6,
             min_score: 0.55,
-            min_fitness: 0.7,
+            min_fitness: 0.5,
             max_rms: 0.08,
             agree_xy: 0.05,
             agree_theta: 0.02,
@@ -172,6 +172,10 @@ pub struct MapperConfig {
     pub icp: IcpConfig,
     /// A front-end match below this fitness falls back to the odometry seed.
     pub min_fitness: f32,
+    /// While turning (odometry rotation step above this, radians), the front-end also tries
+    /// seeds rotated by plus and minus the odometry's rotation step (a wheel heading that
+    /// lags or leads the scan by a frame) and keeps the best match; 0 disables it.
+    pub turn_reseed: f64,
     /// Keyframe thresholds.
     pub keyframe: KeyframeConfig,
     /// Keyframe points within this radius of the robot enter the local point map, metres.
@@ -180,6 +184,11 @@ pub struct MapperConfig {
     pub local_reset: f64,
     /// Voxel of the local point map, metres.
     pub local_voxel: f32,
+    /// On a restart, the local point map is refilled from the occupied cells of the two
+    /// newest submaps (instead of starting from the current scan alone).
+    pub local_from_submaps: bool,
+    /// Occupied-cell threshold (log-odds units) of that refill.
+    pub local_min_log_odds: i8,
     /// Occupancy grid of a submap.
     pub grid: GridParams,
     /// A new submap starts when the robot is this far from the active one's anchor, metres.
@@ -208,10 +217,13 @@ impl Default for MapperConfig {
                 ..IcpConfig::default()
             },
             min_fitness: 0.5,
+            turn_reseed: 0.05,
             keyframe: KeyframeConfig::default(),
-            local_radius: 8.0,
+            local_radius: 30.0,
             local_reset: 3.0,
             local_voxel: 0.05,
+            local_from_submaps: true,
+            local_min_log_odds: 10,
             grid: GridParams::LARGE,
             submap_length: 3.0,
             noise: FrontendNoise::default(),

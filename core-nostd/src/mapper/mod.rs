@@ -582,7 +582,26 @@ impl<'r> Mapper<'r> {
         let mut pose = seed;
         if !self.local.points().is_empty() {
             let tree = self.local.tree();
-            match align(self.scan, &tree, &seed, &self.cfg.icp) {
+            let mut best = align(self.scan, &tree, &seed, &self.cfg.icp);
+            let turn = libm::fabs(increment.theta);
+            if self.cfg.turn_reseed > 0.0 && turn > self.cfg.turn_reseed {
+                for k in [-2.0, -1.0, 1.0, 2.0] {
+                    let alt = Se2::new(seed.x, seed.y, seed.theta + k * turn);
+                    let Ok(r) = align(self.scan, &tree, &alt, &self.cfg.icp) else {
+                        continue;
+                    };
+                    let better = match &best {
+                        // Clearly better only: a wrong minimum near a good one must not
+                        // win on noise.
+                        Ok(b) => r.fitness >= b.fitness - 0.05 && r.rms < 0.7 * b.rms,
+                        Err(_) => true,
+                    };
+                    if better {
+                        best = Ok(r);
+                    }
+                }
+            }
+            match best {
                 Ok(r) if r.fitness >= self.cfg.min_fitness => {
                     pose = r.pose;
                     if r.degenerate.is_some() {
@@ -752,9 +771,50 @@ impl<'r> Mapper<'r> {
         if restart {
             self.local.clear();
             self.st.local_origin = Some(*pose);
+            if self.cfg.local_from_submaps {
+                self.reseed_local(pose);
+            }
         }
         self.local.insert(pose, self.scan, self.cfg.local_radius);
         Some(serial)
+    }
+
+    /// Refills the cleared local point map with the occupied cells of the newest submaps
+    /// (the active one and the one before) near `pose`, so the front-end keeps matching
+    /// against the recent past instead of a single scan after a restart.
+    fn reseed_local(&mut self, pose: &Se2) {
+        let per = self.cells_per_submap;
+        let inv = pose.inverse();
+        // The two submaps with the newest anchors.
+        let mut newest: [Option<(u32, usize)>; 2] = [None, None];
+        for (i, m) in self.submaps.iter().enumerate() {
+            if !m.in_use {
+                continue;
+            }
+            let e = Some((m.anchor_serial, i));
+            if newest[0].is_none_or(|(s, _)| m.anchor_serial > s) {
+                newest[1] = newest[0];
+                newest[0] = e;
+            } else if newest[1].is_none_or(|(s, _)| m.anchor_serial > s) {
+                newest[1] = e;
+            }
+        }
+        for (_, slot) in newest.into_iter().flatten().rev() {
+            let Some(meta) = self.submaps.get(slot) else {
+                continue;
+            };
+            let origin = inv.compose(&meta.anchor_frontend);
+            let Some(cells) = self.cells.get(slot * per..(slot + 1) * per) else {
+                continue;
+            };
+            let Ok(grid) = Submap::from_cells(origin, self.cfg.grid, cells) else {
+                continue;
+            };
+            let n = grid.occupied_points(self.cfg.local_min_log_odds, 2, self.reference);
+            if let Some(points) = self.reference.get(..n) {
+                self.local.insert(pose, points, self.cfg.local_radius);
+            }
+        }
     }
 
     /// The submap slot the keyframe goes into, opening a new one when the robot left the
