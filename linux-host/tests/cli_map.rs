@@ -186,22 +186,29 @@ fn bad_scans_in_a_log_are_rejected_and_counted() {
     line(&mut log, &r.join(" "), 181, 4.0, t);
     let path = tmp.path().join("bad.clf");
     std::fs::write(&path, log).expect("write log");
-    let dir = tmp.path().join("out");
-    let out = cloi(&[
-        "map",
-        path.to_str().expect("utf-8"),
-        "--profile",
-        "home",
-        "--deterministic",
-        "--quiet",
-        "--out",
-        dir.to_str().expect("utf-8"),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let run = |name: &str, stamps: &str| {
+        let dir = tmp.path().join(name);
+        let out = cloi(&[
+            "map",
+            path.to_str().expect("utf-8"),
+            "--profile",
+            "home",
+            "--deterministic",
+            "--quiet",
+            "--stamps",
+            stamps,
+            "--out",
+            dir.to_str().expect("utf-8"),
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        dir
+    };
+    // The mapper rejects and counts the scan stamped in the past.
+    let dir = run("reject", "reject");
     let r = report(&dir);
     let m = &r["mapper"];
     assert_eq!(r["scans"].as_u64(), Some(64), "{r}");
@@ -215,6 +222,17 @@ fn bad_scans_in_a_log_are_rejected_and_counted() {
     let (first, last) = (&traj[0], &traj[traj.len() - 1]);
     let dx = last[1] - first[1];
     assert!((dx - 3.0).abs() < 0.1, "travelled {dx} m");
+    // In file order (the default) it is kept, under its own stamp, and the repair counted.
+    let dir = run("file-order", "file-order");
+    let r = report(&dir);
+    assert_eq!(r["scans_rejected"].as_u64(), Some(2), "{r}");
+    assert_eq!(r["stamps_repaired"].as_u64(), Some(2), "{r}");
+    let traj = tum_rows(&dir.join("trajectory.tum"));
+    assert_eq!(traj.len(), 62);
+    assert!(
+        traj.iter().any(|row| (row[0] - 997.0).abs() < 0.005),
+        "stamp kept"
+    );
 }
 
 #[test]

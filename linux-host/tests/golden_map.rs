@@ -1,8 +1,12 @@
-//! Golden test of `cloi map` on a cut of a real log (the first 4,000 scans of `intel.clf`,
-//! about 13 minutes of data): the relation error against the GMapping reference (the metric of
-//! `cloi eval ref`) stays under its golden bound, deterministic runs are bit-identical, the
-//! two-thread schedule and a deliberately delayed back-end keep the real-time pose free of
-//! jumps. Release mode: `cargo test --release -p cloi-host --features golden --test golden_map`.
+//! Golden tests of `cloi map` on real logs, against the GMapping reference with the metric of
+//! `cloi eval ref`:
+//! * the whole `mit-csail.clf` (1,988 scans, 7 minutes): the relation error of the final
+//!   trajectory beats GMapping's published 0.049 m, and two deterministic runs are identical;
+//! * a cut of `intel.clf` (the first 4,000 scans, 13 minutes, before its big loops close):
+//!   the error stays under its golden bound, and the two-thread schedule and a deliberately
+//!   delayed back-end keep the real-time pose free of jumps.
+//!
+//! Release mode: `cargo test --release -p cloi-host --features golden --test golden_map`.
 
 use std::path::Path;
 use std::process::Command;
@@ -13,8 +17,6 @@ fn map(log: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
     let mut args = vec![
         "map",
         log.to_str().expect("utf-8"),
-        "--max-scans",
-        "4000",
         "--quiet",
         "--out",
         out.to_str().expect("utf-8"),
@@ -29,21 +31,22 @@ fn map(log: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
     serde_json::from_str(&text).expect("json")
 }
 
-fn relation_error(dir: &Path, reference: &Path) -> f64 {
+fn relation_error(dir: &Path, reference: &Path, min_pairs: usize) -> f64 {
     let traj = PlanarTrajectory::load_tum(&dir.join("trajectory.tum")).expect("trajectory");
     let reference = PlanarTrajectory::load_reference(reference).expect("reference");
     let rels = relations_from_reference(&reference, 1.0);
     let s = score(&traj, &rels, 0.0).expect("score");
-    assert!(s.pairs_used > 500, "{s:?}");
+    assert!(s.pairs_used > min_pairs, "{s:?}");
     s.trans_mean_m
 }
 
 #[test]
-fn intel_cut_maps_within_the_golden_error_and_repeats_exactly() {
-    let Some(log) = cloi_host::dataset::shared_file("carmen/intel.clf") else {
+fn csail_beats_gmapping_and_repeats_exactly() {
+    let Some(log) = cloi_host::dataset::shared_file("carmen/mit-csail.clf") else {
         return;
     };
-    let Some(reference) = cloi_host::dataset::shared_file("carmen/intel.gfs_reference_poses.txt")
+    let Some(reference) =
+        cloi_host::dataset::shared_file("carmen/mit-csail.gfs_reference_poses.txt")
     else {
         return;
     };
@@ -58,17 +61,37 @@ fn intel_cut_maps_within_the_golden_error_and_repeats_exactly() {
             "{f} differs between two deterministic runs"
         );
     }
-    let err = relation_error(&a, &reference);
+    let err = relation_error(&a, &reference, 500);
+    println!("mit-csail: relation error {err:.4} m, report {ra}");
+    // Measured 0.0447 m (2026-11-22); GMapping's published figure is the bound.
+    assert!(err < 0.049, "relation error {err} m");
+    assert!(ra["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{ra}");
+}
+
+#[test]
+fn intel_cut_stays_within_its_bound_and_has_no_jumps() {
+    let Some(log) = cloi_host::dataset::shared_file("carmen/intel.clf") else {
+        return;
+    };
+    let Some(reference) = cloi_host::dataset::shared_file("carmen/intel.gfs_reference_poses.txt")
+    else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let a = tmp.path().join("a");
+    let cut = ["--max-scans", "4000"];
+    let ra = map(&log, &a, &[&cut[..], &["--deterministic"]].concat());
+    let err = relation_error(&a, &reference, 500);
     println!("intel first 4000 scans: relation error {err:.4} m, report {ra}");
-    // Measured 0.846 m (2026-11-22, f90fc1e); the bound leaves 5 %.
-    assert!(err < 0.89, "relation error {err} m");
-    assert_eq!(ra["mapper"]["icp_failures"].as_u64(), Some(0), "{ra}");
+    // Measured 0.605 m (2026-11-22): the cut ends before intel's big loops close; 5 % margin.
+    assert!(err < 0.64, "relation error {err} m");
+    assert_eq!(ra["stamps_repaired"].as_u64(), Some(494), "{ra}");
     assert!(ra["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{ra}");
 
     // Two threads, and a back-end held back by 30 s of data: no jumps either.
-    for extra in [&[][..], &["--backend-delay", "30"][..]] {
-        let dir = tmp.path().join(format!("t{}", extra.len()));
-        let r = map(&log, &dir, extra);
+    for (i, extra) in [&[][..], &["--backend-delay", "30"][..]].iter().enumerate() {
+        let dir = tmp.path().join(format!("t{i}"));
+        let r = map(&log, &dir, &[&cut[..], extra].concat());
         assert!(r["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{r}");
         assert_eq!(r["scans"], ra["scans"]);
     }

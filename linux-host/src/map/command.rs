@@ -8,7 +8,7 @@ use clap::Args;
 
 use super::config::{MapConfig, Profile};
 use super::input::InputArgs;
-use super::run::{default_out, run, MapSettings};
+use super::run::{default_out, run, MapSettings, StampPolicy};
 
 /// Arguments of `cloi map`.
 #[derive(Debug, Args)]
@@ -39,6 +39,11 @@ pub struct MapArgs {
     /// Stop after this many scans.
     #[arg(long)]
     pub max_scans: Option<u64>,
+    /// Time stamps that step back: `file-order` gives the mapper the stamp moved to 1 µs after
+    /// the previous one (the outputs keep the original; counted as `stamps_repaired`),
+    /// `reject` lets the mapper reject the event (counted).
+    #[arg(long, value_enum, default_value = "file-order")]
+    pub stamps: StampPolicy,
     /// How the input is read (laser, mounting, topics, simulator).
     #[command(flatten)]
     pub input_args: InputArgs,
@@ -74,6 +79,7 @@ pub fn run_command(args: &MapArgs, out: &mut dyn Write) -> Result<()> {
         backend_delay_s,
         backend_iterations_per_scan: args.backend_iterations,
         max_scans: args.max_scans,
+        stamps: args.stamps,
         progress: !args.quiet,
     };
     let result = run(input, &settings)?;

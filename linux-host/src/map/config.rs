@@ -201,7 +201,7 @@ impl MapConfig {
                 search_window_xy: 1.5,
                 search_window_theta: 0.5,
                 min_score: 0.55,
-                max_candidates: 2,
+                max_candidates: 3,
                 // chi-square, 3 degrees of freedom, 99 %.
                 mahalanobis_gate: 11.34,
             },

@@ -52,8 +52,21 @@ pub struct MapSettings {
     pub backend_iterations_per_scan: u32,
     /// Stop after this many scans.
     pub max_scans: Option<u64>,
+    /// What to do with time stamps that step back.
+    pub stamps: StampPolicy,
     /// Show a progress bar (when stderr is a terminal).
     pub progress: bool,
+}
+
+/// What `cloi map` does with a time stamp that is not after the previous one of its stream.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum StampPolicy {
+    /// The input's order is the true order (a log file written as the data came, whose
+    /// stamps jitter, like intel.clf's): the mapper gets the stamp moved to 1 µs after the
+    /// previous one; the outputs keep the original stamp; the repairs are counted.
+    FileOrder,
+    /// The mapper rejects the event and counts it.
+    Reject,
 }
 
 /// What a run produced, besides the files.
@@ -173,40 +186,63 @@ struct Driver {
     deadline: Duration,
     late: bool,
     scans_carry_odometry: bool,
-    last_scan_odometry: Option<i64>,
+    /// Repair stamps that step back (file order is the true order).
+    file_order: bool,
+    /// Shortest valid range (the configuration's, when the input says less), metres.
+    range_min: f32,
+    /// Last stamp given to the mapper per stream (odometry, gyro, scans).
+    clocks: [Option<i64>; 3],
+    stamps_repaired: u64,
 }
 
 impl Driver {
+    /// The stamp the mapper gets for an event of stream `k` (0 odometry, 1 gyro, 2 scans)
+    /// stamped `t`: with file-order stamps, a stamp not after the stream's previous one is
+    /// moved to 1 µs after it (counted); otherwise `t` as it is (the core rejects it).
+    fn clock(&mut self, k: usize, t: i64) -> i64 {
+        if !self.file_order {
+            return t;
+        }
+        let c = match self.clocks[k] {
+            Some(last) if t <= last => {
+                self.stamps_repaired += 1;
+                last + 1_000
+            }
+            _ => t,
+        };
+        self.clocks[k] = Some(c);
+        c
+    }
+
     fn feed(&mut self, mapper: &mut Mapper<'_>, ev: &SensorEvent, started: Instant) {
         match ev {
             SensorEvent::Odometry { t_ns, pose } => {
                 if !self.scans_carry_odometry {
-                    let _ = mapper.push_odometry(*t_ns, *pose);
+                    let t = self.clock(0, *t_ns);
+                    let _ = mapper.push_odometry(t, *pose);
                 }
             }
             SensorEvent::Gyro { t_ns, yaw_rate } => {
-                let _ = mapper.push_gyro(*t_ns, *yaw_rate);
+                let t = self.clock(1, *t_ns);
+                let _ = mapper.push_gyro(t, *yaw_rate);
             }
             SensorEvent::Scan(s) => {
+                let stamp = self.clock(2, s.t_ns);
                 // CARMEN scan lines carry the odometry at the scan's own time: the most exact
                 // seed. Once they do, the separate odometry lines are not used (they are logged
                 // at other times and would only be interpolated).
                 if let Some(odom) = s.odom {
-                    if !self.scans_carry_odometry {
-                        self.scans_carry_odometry = true;
-                    }
-                    if self.last_scan_odometry != Some(s.t_ns) {
-                        let _ = mapper.push_odometry(s.t_ns, odom);
-                        self.last_scan_odometry = Some(s.t_ns);
-                    }
+                    self.scans_carry_odometry = true;
+                    let t = self.clock(0, stamp);
+                    let _ = mapper.push_odometry(t, odom);
                 }
                 let input = ScanInput {
-                    stamp: s.t_ns,
+                    stamp,
                     ranges: &s.ranges,
                     geometry: BeamGeometry {
                         angle_min: s.angle_min,
                         angle_increment: s.angle_increment,
-                        range_min: s.range_min,
+                        range_min: s.range_min.max(self.range_min),
                         range_max: s.range_max,
                     },
                     mounting: s.laser_offset,
@@ -216,7 +252,7 @@ impl Driver {
                 let result = mapper.push_scan(&input, late);
                 self.scan_us.push(t0.elapsed().as_secs_f64() * 1e6);
                 match result {
-                    Ok(out) => self.accept(mapper, &out),
+                    Ok(out) => self.accept(mapper, &out, s.t_ns),
                     Err(_) => self.rejected += 1,
                 }
                 self.late = started.elapsed() > self.deadline;
@@ -224,7 +260,8 @@ impl Driver {
         }
     }
 
-    fn accept(&mut self, mapper: &Mapper<'_>, out: &FrameOutput) {
+    /// Records an accepted scan under its original stamp `stamp`.
+    fn accept(&mut self, mapper: &Mapper<'_>, out: &FrameOutput, stamp: i64) {
         let reference = mapper
             .node_of(out.reference_serial)
             .and_then(|i| mapper.nodes().get(i))
@@ -236,10 +273,10 @@ impl Driver {
             }
             self.keyframe_frontend[s] = out.frontend;
         }
-        self.first_stamp.get_or_insert(out.stamp);
-        self.last_stamp = out.stamp;
+        self.first_stamp.get_or_insert(stamp);
+        self.last_stamp = self.last_stamp.max(stamp);
         self.records.push(ScanRecord {
-            stamp: out.stamp,
+            stamp,
             reference: out.reference_serial,
             rel: reference.between(&out.frontend),
             gpe: out.pose,
@@ -273,6 +310,7 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
 
 /// What the mapper thread hands back.
 struct Finished {
+    stamps_repaired: u64,
     scan_us: Vec<f64>,
     records: Vec<ScanRecord>,
     keyframe_frontend: Vec<Se2>,
@@ -304,7 +342,10 @@ fn drive(
         deadline: Duration::from_micros(settings.config.gpe.deadline_us),
         late: false,
         scans_carry_odometry: false,
-        last_scan_odometry: None,
+        file_order: settings.stamps == StampPolicy::FileOrder,
+        range_min: settings.config.preprocess.range_min,
+        clocks: [None; 3],
+        stamps_repaired: 0,
     };
     let stats_handle = input.stats_handle();
     let max_scans = settings.max_scans.unwrap_or(u64::MAX);
@@ -451,6 +492,7 @@ fn drive(
         records: driver.records,
         keyframe_frontend: driver.keyframe_frontend,
         scan_us: driver.scan_us,
+        stamps_repaired: driver.stamps_repaired,
         rejected: driver.rejected,
         first_stamp: driver.first_stamp,
         last_stamp: driver.last_stamp,
@@ -553,6 +595,9 @@ fn finish(
         .extra
         .insert("speed_x_realtime".into(), json!(report.speed()));
     report.extra.insert("mapper".into(), stats_json(&s));
+    report
+        .extra
+        .insert("stamps_repaired".into(), json!(f.stamps_repaired));
     let mut us = f.scan_us.clone();
     us.sort_by(f64::total_cmp);
     let pct = |q: f64| {
