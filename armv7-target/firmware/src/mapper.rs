@@ -227,9 +227,12 @@ fn print_stat(
 
 /// Runs the mapper over `log_path`, writing poses to `out_path`. Returns an error message.
 pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
-    let (Some(resources), Some(ranges), Some(read_buffer), Some(out)) =
-        (RESOURCES.take(), RANGES.take(), READ_BUFFER.take(), OUT.take())
-    else {
+    let (Some(resources), Some(ranges), Some(read_buffer), Some(out)) = (
+        RESOURCES.take(),
+        RANGES.take(),
+        READ_BUFFER.take(),
+        OUT.take(),
+    ) else {
         return Err("mapper started twice");
     };
     let (Some(scan_counts), Some(backend_counts), Some(flags), Some(scratch)) = (
@@ -365,7 +368,11 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         s.gpe_predicted
     );
     let kept = scans.min(MAX_SCANS);
-    let (sc, bc, fl) = (&scan_counts[..kept], &backend_counts[..kept], &flags[..kept]);
+    let (sc, bc, fl) = (
+        &scan_counts[..kept],
+        &backend_counts[..kept],
+        &flags[..kept],
+    );
     print_stat("push_scan", sc, fl, |f| f & FLAG_ACCEPTED != 0, scratch);
     print_stat(
         "frontend_gpe",
