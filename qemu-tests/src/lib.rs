@@ -48,7 +48,11 @@ pub fn build_firmware() -> Result<PathBuf> {
         bail!("firmware build failed ({status})");
     }
     let elf = firmware_elf("cloi-firmware");
-    for bin in [&elf, &firmware_elf("cloi-replay")] {
+    for bin in [
+        &elf,
+        &firmware_elf("cloi-replay"),
+        &firmware_elf("cloi-mapper"),
+    ] {
         if !bin.is_file() {
             bail!("firmware ELF {} missing after the build", bin.display());
         }
@@ -56,8 +60,9 @@ pub fn build_firmware() -> Result<PathBuf> {
     Ok(elf)
 }
 
-/// Path of a firmware binary after [`build_firmware`]: `cloi-firmware` (the fixed workload)
-/// or `cloi-replay` (a `.cloilog` streamed through semihosting).
+/// Path of a firmware binary after [`build_firmware`]: `cloi-firmware` (the fixed workload),
+/// `cloi-replay` (a `.cloilog` streamed through semihosting) or `cloi-mapper` (the mapper on
+/// a `.cloilog`).
 pub fn firmware_elf(name: &str) -> PathBuf {
     firmware_dir()
         .join("target")
@@ -189,6 +194,7 @@ pub fn parse_log(log: &str) -> Result<FirmwareRun> {
     Ok(run)
 }
 
+pub mod mapper;
 pub mod replay;
 
 #[cfg(test)]

@@ -2,12 +2,15 @@
 //! `vexpress-a9`):
 //! * `cloi-firmware` (`src/main.rs`): the core's fixed workload, section by section;
 //! * `cloi-replay` (`src/bin/cloi-replay.rs`): a recorded `.cloilog` streamed from the host
-//!   through semihosting, one event at a time ([`replay`]).
+//!   through semihosting, one event at a time ([`replay`]);
+//! * `cloi-mapper` (`src/bin/cloi-mapper.rs`): the real mapper (`home` profile) over a
+//!   `.cloilog`, fed as `cloi map --deterministic` feeds it ([`mapper`]).
 //!
 //! They are two binaries so that the replay's code (and later the mapper's) cannot change how
 //! the compiler inlines the workload's sections, whose instruction budgets are fixed.
 #![no_std]
 
+pub mod mapper;
 pub mod replay;
 pub mod statics;
 pub mod timer;

@@ -62,7 +62,7 @@ static OUT: TakeOnce<OutBuffer> = TakeOnce::new(OutBuffer {
 });
 
 /// A semihosting file read in fixed chunks.
-struct ChunkedFile(File);
+pub(crate) struct ChunkedFile(pub(crate) File);
 
 impl ByteSource for ChunkedFile {
     type Error = semihosting::io::Error;
@@ -74,9 +74,9 @@ impl ByteSource for ChunkedFile {
 }
 
 /// Text lines collected for the output file.
-struct OutBuffer {
-    bytes: [u8; OUT_BUFFER],
-    len: usize,
+pub(crate) struct OutBuffer {
+    pub(crate) bytes: [u8; OUT_BUFFER],
+    pub(crate) len: usize,
 }
 
 impl core::fmt::Write for OutBuffer {
@@ -90,7 +90,14 @@ impl core::fmt::Write for OutBuffer {
 }
 
 impl OutBuffer {
-    fn flush_to(&mut self, file: &mut File) -> Result<(), semihosting::io::Error> {
+    pub(crate) const fn new() -> Self {
+        Self {
+            bytes: [0; OUT_BUFFER],
+            len: 0,
+        }
+    }
+
+    pub(crate) fn flush_to(&mut self, file: &mut File) -> Result<(), semihosting::io::Error> {
         file.write_all(&self.bytes[..self.len])?;
         self.len = 0;
         Ok(())
@@ -98,7 +105,7 @@ impl OutBuffer {
 }
 
 /// Copies `text` into `buf` with a terminating NUL, for the semihosting calls.
-fn c_path<'a>(text: &str, buf: &'a mut [u8; 512]) -> Option<&'a CStr> {
+pub(crate) fn c_path<'a>(text: &str, buf: &'a mut [u8; 512]) -> Option<&'a CStr> {
     let bytes = text.as_bytes();
     buf.get_mut(..bytes.len())?.copy_from_slice(bytes);
     *buf.get_mut(bytes.len())? = 0;
@@ -106,7 +113,7 @@ fn c_path<'a>(text: &str, buf: &'a mut [u8; 512]) -> Option<&'a CStr> {
 }
 
 /// Nearest-rank quantile `percent / 100` of sorted values: the `ceil(p n)`-th smallest.
-fn quantile(sorted: &[u32], percent: usize) -> u32 {
+pub(crate) fn quantile(sorted: &[u32], percent: usize) -> u32 {
     let n = sorted.len();
     let rank = (percent * n).div_ceil(100).clamp(1, n.max(1));
     sorted.get(rank - 1).copied().unwrap_or(0)

@@ -23,6 +23,12 @@
 //!   [`InputOptions::laser_offset`] if given, else the chain of static transforms
 //!   (`/tf_static`) from the scan's frame up to the robot frame (the odometry's child frame,
 //!   else [`InputOptions::base_frame`]), else the identity (with a warning).
+//! * **`.cloilog`** (the firmware's binary sensor log that `cloi convert --to cloilog` writes,
+//!   recognised by its magic): odometry records -> `Odometry`, gyro records -> `Gyro`, scan
+//!   records -> `Scan` with the record's geometry, laser offset and odometry pose (in
+//!   [`ScanEvent::odom`]); [`InputOptions::laser_offset`] and [`InputOptions::range_max`]
+//!   override the record's. Records of unknown kinds are skipped (counted); a damaged record
+//!   (CRC, length) ends the stream with an error, since the framing cannot be trusted after it.
 //! * **Simulator** ([`sim_input`]): the built-in worlds of `cloi sim` with a LiDAR, wheel
 //!   odometry and gyro, run on a background thread that feeds a bounded channel.
 //!
@@ -342,7 +348,7 @@ fn resolve_path(path: &Path) -> Result<PathBuf> {
     }
 }
 
-/// Opens a CARMEN log or a ROS 2 bag (recognised by its content) as a stream of events.
+/// Opens a CARMEN log, a ROS 2 bag or a `.cloilog` (recognised by its content) as a stream of events.
 ///
 /// # Errors
 /// The file cannot be opened.
@@ -355,6 +361,17 @@ pub fn open_input(path: &Path, opts: &InputOptions) -> Result<InputStream> {
         .with_context(|| format!("reading {}", path.display()))?;
     let len = file.metadata().map(|m| m.len()).ok();
     drop(file);
+    if head[..n] == cloi_core::sensor::log::MAGIC {
+        let file = File::open(&path).with_context(|| format!("opening {}", path.display()))?;
+        let size = len.map_or(InputSize::Unknown, InputSize::Bytes);
+        return Ok(InputStream::new(
+            Box::new(CloilogSource::new(
+                std::io::BufReader::with_capacity(1 << 16, file),
+                opts,
+            )),
+            size,
+        ));
+    }
     if head[..n] == *MCAP_MAGIC {
         let options = BagReadOptions {
             strict: opts.strict,
@@ -599,6 +616,173 @@ impl EventSource for CarmenSource {
                 }
             }
         }
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// .cloilog
+
+/// A `.cloilog` read frame by frame with the core's decoder.
+struct CloilogSource<R> {
+    reader: R,
+    /// The current frame's bytes (at most [`cloi_core::sensor::log::MAX_FRAME`]).
+    frame: Vec<u8>,
+    offset_override: Option<Se2>,
+    range_max_override: Option<f32>,
+    /// Bytes consumed so far.
+    offset: u64,
+    header: Option<cloi_core::sensor::log::LogHeader>,
+    records: u32,
+    ignored: u64,
+    failed: bool,
+}
+
+impl<R: Read> CloilogSource<R> {
+    fn new(reader: R, opts: &InputOptions) -> Self {
+        Self {
+            reader,
+            frame: Vec::with_capacity(cloi_core::sensor::log::MAX_FRAME),
+            offset_override: opts.laser_offset,
+            range_max_override: opts.range_max,
+            offset: 0,
+            header: None,
+            records: 0,
+            ignored: 0,
+            failed: false,
+        }
+    }
+
+    /// Reads exactly `n` more bytes onto `frame`; `Ok(false)` at a clean end before any byte.
+    fn fill(&mut self, n: usize) -> Result<bool> {
+        let start = self.frame.len();
+        self.frame.resize(start + n, 0);
+        let mut got = 0;
+        while got < n {
+            match self.reader.read(&mut self.frame[start + got..]) {
+                Ok(0) => break,
+                Ok(k) => got += k,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e).context("reading the cloilog"),
+            }
+        }
+        self.frame.truncate(start + got);
+        if got == 0 && start == 0 {
+            return Ok(false);
+        }
+        if got < n {
+            bail!(
+                "cloilog at byte {}: {}",
+                self.offset,
+                cloi_core::sensor::log::LogError::Truncated {
+                    have: start + got,
+                    need: start + n,
+                }
+            );
+        }
+        Ok(true)
+    }
+
+    fn next_record(&mut self, stats: &mut InputStats) -> Result<Option<SensorEvent>> {
+        use cloi_core::sensor::log::{
+            decode_frame, decode_header, frame_len, LogError, LogRecord, HEADER_LEN,
+        };
+        let damaged = |offset: u64, e: LogError| anyhow::anyhow!("cloilog at byte {offset}: {e}");
+        if self.header.is_none() {
+            self.frame.clear();
+            if !self.fill(HEADER_LEN)? {
+                bail!("cloilog: empty file");
+            }
+            let (header, len) = decode_header(&self.frame)
+                .map_err(|e| damaged(0, e))?
+                .ok_or_else(|| damaged(0, LogError::BadMagic))?;
+            // A longer header of a later minor revision: skip what this reader does not know.
+            if len > HEADER_LEN {
+                self.frame.clear();
+                self.fill(len - HEADER_LEN)?;
+            }
+            self.header = Some(header);
+            self.offset = len as u64;
+        }
+        loop {
+            self.frame.clear();
+            if !self.fill(8)? {
+                if let Some(expected) = self.header.and_then(|h| h.record_count) {
+                    if expected != self.records {
+                        return Err(damaged(
+                            self.offset,
+                            LogError::CountMismatch {
+                                expected,
+                                found: self.records,
+                            },
+                        ));
+                    }
+                }
+                return Ok(None);
+            }
+            let total = frame_len(&self.frame)
+                .map_err(|e| damaged(self.offset, e))?
+                .unwrap_or(8);
+            self.fill(total - 8)?;
+            let at = self.offset;
+            self.offset += total as u64;
+            stats.bytes_read = self.offset;
+            let (record, _) = decode_frame(&self.frame).map_err(|e| damaged(at, e))?;
+            self.records = self.records.saturating_add(1);
+            let event = match record {
+                LogRecord::Odometry(o) => SensorEvent::Odometry {
+                    t_ns: o.stamp.as_nanos(),
+                    pose: o.pose,
+                },
+                LogRecord::Gyro(g) => SensorEvent::Gyro {
+                    t_ns: g.stamp.as_nanos(),
+                    yaw_rate: g.yaw_rate,
+                },
+                LogRecord::Scan(s) => {
+                    let m = s.meta;
+                    let laser_offset = self.offset_override.unwrap_or(m.laser_offset);
+                    if stats.laser_offset.is_none() {
+                        stats.laser_offset = Some(laser_offset);
+                        stats.laser_offset_source = Some(
+                            if self.offset_override.is_some() {
+                                "option"
+                            } else {
+                                "cloilog"
+                            }
+                            .into(),
+                        );
+                    }
+                    SensorEvent::Scan(ScanEvent {
+                        t_ns: m.stamp.as_nanos(),
+                        ranges: s.ranges().collect(),
+                        angle_min: m.geometry.angle_min,
+                        angle_increment: m.geometry.angle_increment,
+                        range_min: m.geometry.range_min,
+                        range_max: self.range_max_override.unwrap_or(m.geometry.range_max),
+                        laser_offset,
+                        odom: m.odom,
+                    })
+                }
+                LogRecord::Unknown { .. } => {
+                    self.ignored += 1;
+                    stats.skipped = self.ignored;
+                    continue;
+                }
+            };
+            return Ok(Some(event));
+        }
+    }
+}
+
+impl<R: Read> EventSource for CloilogSource<R> {
+    fn next_event(&mut self, stats: &mut InputStats) -> Option<Result<SensorEvent>> {
+        if self.failed {
+            return None;
+        }
+        let item = self.next_record(stats).transpose();
+        if matches!(item, Some(Err(_))) {
+            self.failed = true;
+        }
+        item
     }
 }
 
@@ -1015,6 +1199,147 @@ mod tests {
             SensorEvent::Scan(s) => s,
             other => panic!("expected a scan, got {other:?}"),
         }
+    }
+
+    /// Odometry, gyro and scan records written with the core's encoder come back as the same
+    /// events, bit for bit; a cut file is an error, not a short stream.
+    #[test]
+    fn cloilog_records_become_events() {
+        use cloi_core::sensor::log::{
+            encode_gyro, encode_header, encode_odometry, encode_scan, GyroRecord, OdometryRecord,
+            ScanMeta, MAX_FRAME,
+        };
+        use cloi_core::sensor::{ScanGeometry, Timestamp};
+        let offset = Se2::new(0.12, -0.01, 0.03);
+        let geometry = ScanGeometry {
+            angle_min: -1.5,
+            angle_increment: 0.25,
+            range_min: 0.0,
+            range_max: 50.0,
+        };
+        let ranges = [1.0f32, f32::NAN, 81.83, 2.5];
+        let mut bytes = vec![0u8; 16];
+        encode_header(Some(4), &mut bytes).unwrap();
+        let mut frame = vec![0u8; MAX_FRAME];
+        let odom = OdometryRecord {
+            stamp: Timestamp::from_nanos(100),
+            pose: Se2::new(1.0, 2.0, 0.3),
+        };
+        let n = encode_odometry(&odom, &mut frame).unwrap();
+        bytes.extend_from_slice(&frame[..n]);
+        let gyro = GyroRecord {
+            stamp: Timestamp::from_nanos(120),
+            yaw_rate: -0.25,
+        };
+        let n = encode_gyro(&gyro, &mut frame).unwrap();
+        bytes.extend_from_slice(&frame[..n]);
+        for (t, odom) in [(150, Some(Se2::new(1.1, 2.0, 0.31))), (250, None)] {
+            let meta = ScanMeta {
+                stamp: Timestamp::from_nanos(t),
+                geometry,
+                laser_offset: offset,
+                odom,
+            };
+            let n = encode_scan(&meta, &ranges, &mut frame).unwrap();
+            bytes.extend_from_slice(&frame[..n]);
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("t.cloilog");
+        std::fs::write(&path, &bytes).unwrap();
+        let mut stream = open_input(&path, &InputOptions::default()).unwrap();
+        let events = collect(&mut stream);
+        assert_eq!(events.len(), 4);
+        assert_eq!(
+            events[0],
+            SensorEvent::Odometry {
+                t_ns: 100,
+                pose: Se2::new(1.0, 2.0, 0.3)
+            }
+        );
+        assert_eq!(
+            events[1],
+            SensorEvent::Gyro {
+                t_ns: 120,
+                yaw_rate: -0.25
+            }
+        );
+        for (e, (t, odom)) in events[2..]
+            .iter()
+            .zip([(150, Some(Se2::new(1.1, 2.0, 0.31))), (250, None)])
+        {
+            let s = scan_of(e);
+            assert_eq!((s.t_ns, s.odom, s.laser_offset), (t, odom, offset));
+            assert_eq!(
+                (s.angle_min, s.angle_increment, s.range_min, s.range_max),
+                (-1.5, 0.25, 0.0, 50.0)
+            );
+            let bits: Vec<u32> = s.ranges.iter().map(|r| r.to_bits()).collect();
+            let want: Vec<u32> = ranges.iter().map(|r| r.to_bits()).collect();
+            assert_eq!(bits, want);
+        }
+        let stats = stream.stats();
+        assert_eq!((stats.scans, stats.odometry, stats.gyro), (2, 1, 1));
+        assert_eq!(stats.bytes_read, bytes.len() as u64);
+        assert_eq!(stats.laser_offset_source.as_deref(), Some("cloilog"));
+
+        // Overrides of the mounting and the range limit apply to cloilog scans too.
+        let opts = InputOptions {
+            laser_offset: Some(Se2::IDENTITY),
+            range_max: Some(10.0),
+            ..InputOptions::default()
+        };
+        let events = collect(&mut open_input(&path, &opts).unwrap());
+        let s = scan_of(&events[2]);
+        assert_eq!((s.laser_offset, s.range_max), (Se2::IDENTITY, 10.0));
+
+        // Cut inside the last record: the events before it, then an error.
+        std::fs::write(&path, &bytes[..bytes.len() - 3]).unwrap();
+        let mut stream = open_input(&path, &InputOptions::default()).unwrap();
+        let items: Vec<_> = stream.by_ref().collect();
+        assert_eq!(items.len(), 4);
+        assert!(items[..3].iter().all(Result::is_ok));
+        let err = items[3].as_ref().unwrap_err().to_string();
+        assert!(err.contains("ends inside a record"), "{err}");
+        assert!(stream.next().is_none());
+    }
+
+    /// `cloi convert --to cloilog` output read back: the same scans, stamps and ranges as the
+    /// CARMEN log it came from.
+    #[test]
+    fn converted_carmen_log_reads_back() {
+        let dir = tempfile::tempdir().unwrap();
+        let clf = dir.path().join("t.clf");
+        std::fs::write(&clf, LOG).unwrap();
+        let out = dir.path().join("t.cloilog");
+        crate::io::cloilog::carmen_to_cloilog(&clf, &out, false, None, None).unwrap();
+        let from_clf = collect(&mut open_input(&clf, &InputOptions::default()).unwrap());
+        let from_log = collect(&mut open_input(&out, &InputOptions::default()).unwrap());
+        let scans = |v: &[SensorEvent]| -> Vec<(i64, Vec<u32>, Option<Se2>)> {
+            v.iter()
+                .filter_map(|e| match e {
+                    SensorEvent::Scan(s) => Some((
+                        s.t_ns,
+                        s.ranges.iter().map(|r| r.to_bits()).collect(),
+                        s.odom,
+                    )),
+                    _ => None,
+                })
+                .collect()
+        };
+        let a = scans(&from_clf);
+        assert!(!a.is_empty());
+        assert_eq!(a, scans(&from_log));
+        let s = scan_of(
+            from_log
+                .iter()
+                .find(|e| matches!(e, SensorEvent::Scan(_)))
+                .unwrap(),
+        );
+        assert!(
+            (s.laser_offset.x - 0.12).abs() < 1e-12,
+            "{:?}",
+            s.laser_offset
+        );
     }
 
     /// A front laser 0.12 m ahead (PARAM), a rear laser, a stamp stepping back, a NaN

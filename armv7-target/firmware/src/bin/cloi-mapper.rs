@@ -1,0 +1,55 @@
+//! CLOi-Mapper firmware for a bare-metal Cortex-A9 (QEMU `vexpress-a9`): the mapper binary.
+//!
+//! Reads `log=PATH out=PATH` from the semihosting command line (`SYS_GET_CMDLINE`, i.e.
+//! QEMU's `-append`), runs the `home` mapper over the `.cloilog` at `log` (see
+//! `cloi_firmware::mapper`), writes the real-time and keyframe poses to `out`, prints the
+//! instruction percentiles per section and the stack high-water mark, and exits through semihosting (status 0 on success). Paths are opened by
+//! QEMU on the host (relative to its working folder) and must not contain spaces.
+#![no_std]
+#![no_main]
+
+use aarch32_rt::entry;
+use cloi_firmware::{mapper, report_stack, timer};
+use semihosting::{println, process};
+
+/// Bytes of command line the firmware reads.
+const CMDLINE_BYTES: usize = 1024;
+
+#[entry]
+fn main() -> ! {
+    timer::enable();
+    println!("firmware=cloi-mapper version={}", env!("CARGO_PKG_VERSION"));
+    let Ok(args) = semihosting::experimental::env::args::<CMDLINE_BYTES>() else {
+        println!("status=error message=\"no semihosting command line\"");
+        process::exit(2);
+    };
+    let (mut log, mut out) = (None, None);
+    // The first word is the kernel's file name.
+    for arg in (&args).skip(1).flatten() {
+        if let Some(v) = arg.strip_prefix("log=") {
+            log = Some(v);
+        } else if let Some(v) = arg.strip_prefix("out=") {
+            out = Some(v);
+        } else {
+            println!("status=error message=\"unknown argument {arg}\"");
+            process::exit(2);
+        }
+    }
+    let (Some(log), Some(out)) = (log, out) else {
+        println!("status=error message=\"usage: -append 'log=PATH out=PATH'\"");
+        process::exit(2);
+    };
+    if let Err(message) = mapper::run(log, out) {
+        println!("status=error message=\"{message}\"");
+        process::exit(1);
+    }
+    report_stack();
+    println!("status=ok");
+    process::exit(0)
+}
+
+#[panic_handler]
+fn panic(info: &core::panic::PanicInfo<'_>) -> ! {
+    println!("status=panic message={}", info);
+    process::exit(101)
+}

@@ -1,0 +1,401 @@
+//! Mapper mode: the real [`Mapper`] (`home` profile, sensor set L) on a recorded `.cloilog`
+//! streamed from the host through semihosting.
+//!
+//! The events are fed exactly as `cloi map --deterministic` feeds them (`Driver::feed` and
+//! `drive` in `linux-host/src/map/run.rs`): odometry records are pushed until the first scan
+//! that carries its own odometry pose, from then on the scan's pose is pushed at the scan's
+//! stamp instead; gyro records are pushed as they come; every scan goes to
+//! [`Mapper::push_scan`] with `deadline_passed = false`, followed by one back-end step of
+//! [`BACKEND_ITERATIONS_PER_SCAN`] Gauss-Newton iterations. At the end an optimization is
+//! requested and the back-end runs until it is idle, as on the host.
+//!
+//! The resources ([`HomeResources`], about 10.9 MB) are one static; nothing is allocated.
+//! The A9 global timer (under `-icount shift=0`) counts the instructions of every call. The
+//! output file gets, through `SYS_WRITE`:
+//!
+//! ```text
+//! # scan t_ns x y theta keyframe push_scan_instructions backend_instructions
+//! scan 976052857387156000 0e0 0e0 -2.458e-3 1 184530 1200
+//! # keyframe serial x y theta
+//! keyframe 0 0e0 0e0 -2.458e-3
+//! ```
+//!
+//! `scan` lines carry the real-time pose (GPE) of every accepted scan, `keyframe` lines the
+//! final (optimized) pose of every keyframe left in the graph, all in Rust's shortest
+//! round-trip form, so parsing gives back the exact `f64` bits. The console gets the
+//! configuration (`config=` its `Debug` form, for the host to compare with its own) and the
+//! instruction percentiles per section (nearest rank).
+
+use core::fmt::Write as _;
+
+use cloi_core::frontend::{BeamGeometry, GridParams, IcpConfig, KeyframeConfig, PreprocessConfig};
+use cloi_core::mapper::{BackendConfig, BackendStep, LoopConfig, Mapper, MapperConfig, ScanInput};
+use cloi_core::profile::HomeResources;
+use cloi_core::sensor::log::{LogReader, LogRecord, MAX_BEAMS, MIN_READER_BUFFER};
+use semihosting::fs::File;
+use semihosting::println;
+
+use crate::replay::{c_path, quantile, ChunkedFile, OutBuffer, CHUNK, MAX_SCANS};
+use crate::statics::TakeOnce;
+use crate::timer;
+
+/// Back-end iterations after every scan (`cloi map --backend-iterations`, default 5).
+pub const BACKEND_ITERATIONS_PER_SCAN: u32 = 5;
+
+/// The `home` profile's configuration exactly as `cloi map --profile home` builds it
+/// (`mapper_config(Profile::Home, &MapConfig::preset(Profile::Home))` on the host): the core's
+/// `home` defaults overridden by the host preset's values. The QEMU test compares its `Debug`
+/// form with the host's, so the two cannot drift apart unnoticed.
+pub fn home_config() -> MapperConfig {
+    let base = MapperConfig::home();
+    MapperConfig {
+        preprocess: PreprocessConfig {
+            voxel_size: 0.05,
+            decimation: 1,
+            ..base.preprocess
+        },
+        max_range: 10.0,
+        icp: IcpConfig {
+            max_iterations: 30,
+            max_correspondence: 0.5,
+            huber: 0.05,
+            min_points: 20,
+            ..base.icp
+        },
+        keyframe: KeyframeConfig {
+            distance: 0.2,
+            angle: 0.35,
+        },
+        grid: GridParams {
+            side: 82,
+            resolution: 0.05,
+            ..base.grid
+        },
+        submap_length: 1.5,
+        loops: LoopConfig {
+            window_max: 1.5,
+            angle_max: 0.5,
+            min_score: 0.55,
+            max_candidates: 2,
+            ..base.loops
+        },
+        backend: BackendConfig {
+            every_keyframes: 50,
+            max_iterations: 20,
+            ..base.backend
+        },
+        ..base
+    }
+}
+
+/// Everything the per-event step keeps between records.
+pub struct State {
+    /// The mapper over the static resources.
+    pub mapper: Mapper<'static>,
+    /// Decoded ranges of the current scan.
+    ranges: &'static mut [f32; MAX_BEAMS],
+    /// A scan carried an odometry pose: separate odometry records are ignored from then on.
+    scans_carry_odometry: bool,
+    /// Stamp of the last scan whose odometry pose was pushed.
+    last_scan_odometry: Option<i64>,
+}
+
+/// What one record did, with the instructions of each call.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct EventCost {
+    /// The record was a scan.
+    pub scan: bool,
+    /// The scan was accepted: its real-time output.
+    pub output: Option<cloi_core::mapper::FrameOutput>,
+    /// Instructions of `push_scan` (front-end, GPE, keyframe, loop search).
+    pub push_scan: u64,
+    /// Instructions of the back-end step after the scan.
+    pub backend: u64,
+    /// The back-end step had nothing to do.
+    pub backend_idle: bool,
+    /// Instructions of odometry and gyro pushes.
+    pub sensors: u64,
+}
+
+fn measure<T>(f: impl FnOnce() -> T) -> (T, u64) {
+    let start = timer::ticks();
+    let value = core::hint::black_box(f());
+    let end = timer::ticks();
+    (value, (end - start) * timer::INSTRUCTIONS_PER_TICK)
+}
+
+/// The one per-record step of the firmware's main loop: the host driver's `feed`, then the
+/// deterministic schedule's back-end step after a scan.
+pub fn process_event(state: &mut State, record: &LogRecord<'_>) -> EventCost {
+    let mut cost = EventCost::default();
+    match record {
+        LogRecord::Odometry(o) => {
+            if !state.scans_carry_odometry {
+                let mapper = &mut state.mapper;
+                let (_, n) = measure(|| mapper.push_odometry(o.stamp.as_nanos(), o.pose));
+                cost.sensors = n;
+            }
+        }
+        LogRecord::Gyro(g) => {
+            let mapper = &mut state.mapper;
+            let (_, n) = measure(|| mapper.push_gyro(g.stamp.as_nanos(), g.yaw_rate));
+            cost.sensors = n;
+        }
+        LogRecord::Scan(s) => {
+            cost.scan = true;
+            let stamp = s.meta.stamp.as_nanos();
+            if let Some(odom) = s.meta.odom {
+                state.scans_carry_odometry = true;
+                if state.last_scan_odometry != Some(stamp) {
+                    let mapper = &mut state.mapper;
+                    let (_, n) = measure(|| mapper.push_odometry(stamp, odom));
+                    cost.sensors = n;
+                    state.last_scan_odometry = Some(stamp);
+                }
+            }
+            // The decoder checked the beam count against MAX_BEAMS, so this cannot fail.
+            let ranges = s.ranges_into(&mut state.ranges[..]).unwrap_or(&[]);
+            let g = s.meta.geometry;
+            let input = ScanInput {
+                stamp,
+                ranges,
+                geometry: BeamGeometry {
+                    angle_min: g.angle_min,
+                    angle_increment: g.angle_increment,
+                    range_min: g.range_min,
+                    range_max: g.range_max,
+                },
+                mounting: s.meta.laser_offset,
+            };
+            let mapper = &mut state.mapper;
+            let (result, n) = measure(|| mapper.push_scan(&input, false));
+            cost.push_scan = n;
+            cost.output = result.ok();
+            let (step, n) = measure(|| mapper.step_backend(BACKEND_ITERATIONS_PER_SCAN));
+            cost.backend = n;
+            cost.backend_idle = step == BackendStep::Idle;
+        }
+        LogRecord::Unknown { .. } => {}
+    }
+    cost
+}
+
+static RESOURCES: TakeOnce<HomeResources> = TakeOnce::new(HomeResources::new());
+static RANGES: TakeOnce<[f32; MAX_BEAMS]> = TakeOnce::new([0.0; MAX_BEAMS]);
+static READ_BUFFER: TakeOnce<[u8; MIN_READER_BUFFER + CHUNK]> =
+    TakeOnce::new([0; MIN_READER_BUFFER + CHUNK]);
+/// Per scan: instructions of `push_scan`, of the back-end step after it, and flags.
+static SCAN_COUNTS: TakeOnce<[u32; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
+static BACKEND_COUNTS: TakeOnce<[u32; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
+static FLAGS: TakeOnce<[u8; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
+static SCRATCH: TakeOnce<[u32; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
+static OUT: TakeOnce<OutBuffer> = TakeOnce::new(OutBuffer::new());
+
+const FLAG_ACCEPTED: u8 = 1;
+const FLAG_KEYFRAME: u8 = 2;
+const FLAG_BACKEND_WORKED: u8 = 4;
+
+/// Prints `stat=NAME n= min= median= p99= max= mean=` over the counts whose flags match.
+fn print_stat(
+    name: &str,
+    counts: &[u32],
+    flags: &[u8],
+    keep: impl Fn(u8) -> bool,
+    scratch: &mut [u32],
+) {
+    let mut n = 0;
+    for (&c, &f) in counts.iter().zip(flags) {
+        if keep(f) {
+            if let Some(slot) = scratch.get_mut(n) {
+                *slot = c;
+                n += 1;
+            }
+        }
+    }
+    let sorted = &mut scratch[..n];
+    sorted.sort_unstable();
+    let total: u64 = sorted.iter().map(|&c| u64::from(c)).sum();
+    println!(
+        "stat={name} n={n} min={} median={} p99={} max={} mean={} total={total}",
+        quantile(sorted, 0),
+        quantile(sorted, 50),
+        quantile(sorted, 99),
+        quantile(sorted, 100),
+        if n > 0 { total / n as u64 } else { 0 },
+    );
+}
+
+/// Runs the mapper over `log_path`, writing poses to `out_path`. Returns an error message.
+pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
+    let (Some(resources), Some(ranges), Some(read_buffer), Some(out)) = (
+        RESOURCES.take(),
+        RANGES.take(),
+        READ_BUFFER.take(),
+        OUT.take(),
+    ) else {
+        return Err("mapper started twice");
+    };
+    let (Some(scan_counts), Some(backend_counts), Some(flags), Some(scratch)) = (
+        SCAN_COUNTS.take(),
+        BACKEND_COUNTS.take(),
+        FLAGS.take(),
+        SCRATCH.take(),
+    ) else {
+        return Err("mapper started twice");
+    };
+    let config = home_config();
+    println!("config={config:?}");
+    println!("backend_iterations_per_scan={BACKEND_ITERATIONS_PER_SCAN}");
+    let (mapper, setup) = measure(move || resources.mapper(config));
+    let Ok(mapper) = mapper else {
+        return Err("the home configuration does not fit the home resources");
+    };
+    println!("setup_instructions={setup}");
+    let mut state = State {
+        mapper,
+        ranges,
+        scans_carry_odometry: false,
+        last_scan_odometry: None,
+    };
+
+    let mut path = [0u8; 512];
+    let log_c = c_path(log_path, &mut path).ok_or("log path too long")?;
+    let file = File::open(log_c).map_err(|_| "cannot open the log (SYS_OPEN)")?;
+    let log_bytes = file.metadata().map(|m| m.len()).unwrap_or(0);
+    let out_c = c_path(out_path, &mut path).ok_or("output path too long")?;
+    let mut out_file = File::create(out_c).map_err(|_| "cannot create the output (SYS_OPEN)")?;
+    println!("mode=mapper profile=home log={log_path} log_bytes={log_bytes} chunk_bytes={CHUNK}");
+    let _ = writeln!(
+        out,
+        "# scan t_ns x y theta keyframe push_scan_instructions backend_instructions"
+    );
+
+    let mut reader =
+        LogReader::new(ChunkedFile(file), read_buffer).map_err(|_| "read buffer too small")?;
+    let (mut scans, mut records, mut rejected) = (0usize, 0u64, 0u64);
+    let (mut sensors_total, mut decode_total) = (0u64, 0u64);
+    loop {
+        let (next, n) = measure(|| reader.next_record());
+        decode_total += n;
+        let record = match next {
+            Ok(Some(record)) => record,
+            Ok(None) => break,
+            Err(e) => {
+                println!("mapper_error=\"{e}\"");
+                return Err("the log is damaged or unreadable");
+            }
+        };
+        records += 1;
+        let cost = process_event(&mut state, &record);
+        sensors_total += cost.sensors;
+        if !cost.scan {
+            continue;
+        }
+        if let (Some(s), Some(b), Some(f)) = (
+            scan_counts.get_mut(scans),
+            backend_counts.get_mut(scans),
+            flags.get_mut(scans),
+        ) {
+            *s = u32::try_from(cost.push_scan).unwrap_or(u32::MAX);
+            *b = u32::try_from(cost.backend).unwrap_or(u32::MAX);
+            *f = if cost.backend_idle {
+                0
+            } else {
+                FLAG_BACKEND_WORKED
+            };
+            if let Some(o) = &cost.output {
+                *f |= FLAG_ACCEPTED | if o.keyframe { FLAG_KEYFRAME } else { 0 };
+            }
+        }
+        scans += 1;
+        let Some(o) = cost.output else {
+            rejected += 1;
+            continue;
+        };
+        if out.len + 256 > out.bytes.len() {
+            out.flush_to(&mut out_file)
+                .map_err(|_| "cannot write the output (SYS_WRITE)")?;
+        }
+        let _ = writeln!(
+            out,
+            "scan {} {:e} {:e} {:e} {} {} {}",
+            o.stamp,
+            o.pose.x,
+            o.pose.y,
+            o.pose.theta,
+            u8::from(o.keyframe),
+            cost.push_scan,
+            cost.backend
+        );
+    }
+
+    // Settle the back-end as the host does: one final optimization over everything.
+    let mapper = &mut state.mapper;
+    let ((), settle) = measure(|| {
+        mapper.request_optimization();
+        while mapper.step_backend(BACKEND_ITERATIONS_PER_SCAN) == BackendStep::Working {}
+    });
+    let _ = writeln!(out, "# keyframe serial x y theta");
+    let graph = mapper.graph();
+    for (m, n) in mapper.nodes().iter().zip(graph.nodes()) {
+        if out.len + 256 > out.bytes.len() {
+            out.flush_to(&mut out_file)
+                .map_err(|_| "cannot write the output (SYS_WRITE)")?;
+        }
+        let _ = writeln!(
+            out,
+            "keyframe {} {:e} {:e} {:e}",
+            m.serial, n.pose.x, n.pose.y, n.pose.theta
+        );
+    }
+    out.flush_to(&mut out_file)
+        .map_err(|_| "cannot write the output (SYS_WRITE)")?;
+    drop(out_file);
+
+    let s = mapper.stats();
+    println!(
+        "mapper_records={records} mapper_scans={scans} mapper_rejected={rejected} \
+         keyframes={} nodes={} edges={} submaps={} loop_closures={} optimizations={} \
+         backend_steps={} gpe_solved={} gpe_predicted={}",
+        s.keyframes,
+        graph.node_count(),
+        graph.edge_count(),
+        s.submaps,
+        s.loop_closures,
+        s.optimizations,
+        s.backend_steps,
+        s.gpe_solved,
+        s.gpe_predicted
+    );
+    let kept = scans.min(MAX_SCANS);
+    let (sc, bc, fl) = (
+        &scan_counts[..kept],
+        &backend_counts[..kept],
+        &flags[..kept],
+    );
+    print_stat("push_scan", sc, fl, |f| f & FLAG_ACCEPTED != 0, scratch);
+    print_stat(
+        "frontend_gpe",
+        sc,
+        fl,
+        |f| f & FLAG_ACCEPTED != 0 && f & FLAG_KEYFRAME == 0,
+        scratch,
+    );
+    print_stat("keyframe_scan", sc, fl, |f| f & FLAG_KEYFRAME != 0, scratch);
+    print_stat("backend_step", bc, fl, |_| true, scratch);
+    print_stat(
+        "backend_working",
+        bc,
+        fl,
+        |f| f & FLAG_BACKEND_WORKED != 0,
+        scratch,
+    );
+    println!(
+        "sensors_instructions_total={sensors_total} decode_instructions_total={decode_total} \
+         settle_instructions={settle}"
+    );
+    if scans > MAX_SCANS {
+        println!("scans_not_in_percentiles={}", scans - MAX_SCANS);
+    }
+    Ok(())
+}

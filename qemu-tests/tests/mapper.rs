@@ -1,0 +1,164 @@
+//! The real mapper on the Cortex-A9: the first scans of intel.clf, converted to a `.cloilog`,
+//! streamed through semihosting into the bare-metal `cloi-mapper` firmware (the `home`
+//! profile's `MapperResources` as one static) under `qemu-system-arm -icount shift=0`, fed
+//! as `cloi map --deterministic` feeds the mapper. The same log goes through `cloi map
+//! --deterministic --profile home` on x86-64 (in-process: `cloi_host::map::run::run`).
+//!
+//! Checks: the two configurations are identical; every scan's real-time pose (`gpe.tum`) and
+//! every keyframe's final pose (`graph.g2o` VERTEX lines) are bit-identical on both machines;
+//! the instruction percentiles per section and the stack are under the budgets below.
+//!
+//! Equality: both sides run the same Rust code on IEEE-754 doubles and floats with `libm`
+//! (no std float functions in the core, no fused multiply-add on either target), so the
+//! results are expected to agree to the bit; the test asserts bit identity, not a tolerance.
+
+use cloi_host::map::config::{MapConfig, Profile};
+use cloi_host::map::run::{mapper_config, run, MapSettings};
+use cloi_host::map::{open_input, InputOptions};
+use cloi_qemu_tests::mapper::run_mapper;
+use cloi_qemu_tests::replay::Percentiles;
+use cloi_qemu_tests::{build_firmware, firmware_elf, workspace_root};
+
+/// Scans of intel.clf mapped (about 0.9 MB of log; enough keyframes for the back-end to run
+/// during the log, about 20 s under QEMU).
+const SCANS: u64 = 1000;
+
+/// Back-end iterations per scan: the default of `cloi map --backend-iterations` and the
+/// firmware's `BACKEND_ITERATIONS_PER_SCAN`.
+const BACKEND_ITERATIONS: u32 = 5;
+
+/// Instruction budgets per section: (name, median, p99, max). Measured on these 1000 scans
+/// (870 accepted, 156 keyframes, 3 back-end optimizations during the log):
+/// * `push_scan` (front-end + GPE + keyframe + loop search, every accepted scan): median
+///   1,173,840, p99 5,110,480, max 6,076,090;
+/// * `frontend_gpe` (scans that did not become keyframes): 1,096,410 / 4,917,420 / 6,076,090;
+/// * `keyframe_scan` (scans that became keyframes): 1,933,380 / 5,515,140 / 5,724,160;
+/// * `backend_working` (back-end steps that optimized, 5 iterations at most): 437,300 /
+///   612,780 / 612,780.
+///
+/// The ceilings leave about 25 % for compiler and tuning changes.
+const BUDGETS: [(&str, u64, u64, u64); 4] = [
+    ("push_scan", 1_470_000, 6_400_000, 7_600_000),
+    ("frontend_gpe", 1_380_000, 6_150_000, 7_600_000),
+    ("keyframe_scan", 2_420_000, 6_900_000, 7_200_000),
+    ("backend_working", 550_000, 770_000, 770_000),
+];
+
+/// Stack high-water budget (issue 8: at most 64 KiB).
+const STACK_BUDGET_BYTES: u64 = 64 * 1024;
+
+#[test]
+fn intel_mapper_on_the_a9_matches_x86_within_budget() {
+    let Some(clf) = cloi_host::dataset::shared_file("carmen/intel.clf") else {
+        return;
+    };
+    let dir = workspace_root().join("target").join("qemu-mapper");
+    std::fs::create_dir_all(&dir).unwrap();
+    let dir = dir.canonicalize().unwrap();
+    let log = dir.join(format!("intel-{SCANS}.cloilog"));
+    let report =
+        cloi_host::io::cloilog::carmen_to_cloilog(&clf, &log, false, None, Some(SCANS)).unwrap();
+    assert_eq!(report.scans, SCANS);
+    assert_eq!(report.input.damaged, 0);
+
+    build_firmware().expect("firmware builds");
+    let elf = firmware_elf("cloi-mapper");
+    let fw = run_mapper(&elf, &log, &dir.join("poses.txt")).expect("mapper firmware run");
+    std::fs::write(dir.join("firmware.log"), &fw.log).unwrap();
+    println!("{}", fw.log);
+
+    // x86-64: `cloi map LOG --deterministic --profile home --quiet --out DIR`.
+    let profile = Profile::Home;
+    let mut config = MapConfig::preset(profile);
+    config.run.deterministic = true;
+    let host_cfg = mapper_config(profile, &config);
+    assert_eq!(
+        fw.config,
+        format!("{host_cfg:?}"),
+        "the firmware's MapperConfig differs from `cloi map --profile home`"
+    );
+    let out = dir.join("host");
+    let settings = MapSettings {
+        profile,
+        config,
+        out: out.clone(),
+        deterministic: true,
+        backend_delay_s: 0.0,
+        backend_iterations_per_scan: BACKEND_ITERATIONS,
+        max_scans: None,
+        progress: false,
+    };
+    let input = open_input(&log, &InputOptions::default()).unwrap();
+    let host = run(input, &settings).expect("cloi map on x86-64");
+
+    // Every scan ran; the same scans were accepted on both.
+    assert_eq!(fw.scans, SCANS);
+    assert_eq!(fw.rejected, host.report.scans_rejected, "{}", fw.log);
+    assert_eq!(fw.poses.len(), host.gpe.len());
+    assert_eq!(fw.counters["keyframes"], host.report.keyframes);
+    assert_eq!(fw.counters["loop_closures"], host.report.loop_closures);
+    assert!(fw.counters["keyframes"] > 10, "{}", fw.log);
+
+    // Real-time poses, bit for bit.
+    for (i, (h, a)) in host.gpe.iter().zip(&fw.poses).enumerate() {
+        assert_eq!(h.0, a.t_ns, "scan {i}: time");
+        let hp = [h.1.x, h.1.y, h.1.theta];
+        for (k, (hv, av)) in hp.iter().zip(&a.pose).enumerate() {
+            assert_eq!(
+                hv.to_bits(),
+                av.to_bits(),
+                "scan {i}: real-time pose component {k}: x86-64 {hv} vs Cortex-A9 {av}"
+            );
+        }
+    }
+    // Final keyframe poses: the VERTEX lines of graph.g2o (shortest round-trip decimals).
+    let g2o = std::fs::read_to_string(out.join("graph.g2o")).unwrap();
+    let vertices: Vec<(u32, [f64; 3])> = g2o
+        .lines()
+        .filter(|l| l.starts_with("VERTEX_SE2 "))
+        .map(|l| {
+            let f: Vec<&str> = l.split_whitespace().collect();
+            let v = |i: usize| f[i].parse::<f64>().unwrap();
+            (f[1].parse().unwrap(), [v(2), v(3), v(4)])
+        })
+        .collect();
+    assert_eq!(vertices.len(), fw.keyframes.len());
+    for ((serial, pose), k) in vertices.iter().zip(&fw.keyframes) {
+        assert_eq!(*serial, k.serial);
+        for (c, (hv, av)) in pose.iter().zip(&k.pose).enumerate() {
+            assert_eq!(
+                hv.to_bits(),
+                av.to_bits(),
+                "keyframe {serial}: component {c}: x86-64 {hv} vs Cortex-A9 {av}"
+            );
+        }
+    }
+
+    // Instruction budgets per section; the printed percentiles are those of the pose file.
+    let accepted: Vec<u64> = fw.poses.iter().map(|p| p.push_scan).collect();
+    assert_eq!(fw.sections["push_scan"], Percentiles::of(&accepted));
+    for (name, median, p99, max) in BUDGETS {
+        let p = fw.sections[name];
+        println!(
+            "{name}: n {} min {} median {} p99 {} max {}",
+            p.n, p.min, p.median, p.p99, p.max
+        );
+        assert!(p.n > 0, "{name}: no samples");
+        assert!(p.median <= median, "{name}: median {} > {median}", p.median);
+        assert!(p.p99 <= p99, "{name}: p99 {} > {p99}", p.p99);
+        assert!(p.max <= max, "{name}: max {} > {max}", p.max);
+    }
+    assert!(
+        fw.stack_used_bytes > 0 && fw.stack_used_bytes <= STACK_BUDGET_BYTES,
+        "stack high-water {} B (budget {STACK_BUDGET_BYTES} B)",
+        fw.stack_used_bytes
+    );
+    let last = host.gpe.last().unwrap().1;
+    println!(
+        "{} keyframes, final real-time pose {:.6} {:.6} {:.6} (identical on both)",
+        vertices.len(),
+        last.x,
+        last.y,
+        last.theta
+    );
+}
