@@ -13,7 +13,7 @@
 //! results are expected to agree to the bit; the test asserts bit identity, not a tolerance.
 
 use cloi_host::map::config::{MapConfig, Profile};
-use cloi_host::map::run::{mapper_config, run, MapSettings};
+use cloi_host::map::run::{mapper_config, run, MapSettings, StampPolicy};
 use cloi_host::map::{open_input, InputOptions};
 use cloi_qemu_tests::mapper::run_mapper;
 use cloi_qemu_tests::replay::Percentiles;
@@ -28,20 +28,23 @@ const SCANS: u64 = 1000;
 const BACKEND_ITERATIONS: u32 = 5;
 
 /// Instruction budgets per section: (name, median, p99, max). Measured on these 1000 scans
-/// (870 accepted, 156 keyframes, 3 back-end optimizations during the log):
+/// (all accepted: the 130 whose stamps step back are fed in file order; 163 keyframes, 3
+/// back-end optimizations during the log), after the front-end's accuracy work (30 m local
+/// map refilled from submaps, turn reseeding):
 /// * `push_scan` (front-end + GPE + keyframe + loop search, every accepted scan): median
-///   1,173,840, p99 5,110,480, max 6,076,090;
-/// * `frontend_gpe` (scans that did not become keyframes): 1,096,410 / 4,917,420 / 6,076,090;
-/// * `keyframe_scan` (scans that became keyframes): 1,933,380 / 5,515,140 / 5,724,160;
-/// * `backend_working` (back-end steps that optimized, 5 iterations at most): 437,300 /
-///   612,780 / 612,780.
+///   1,324,990, p99 9,275,810, max 25,397,940;
+/// * `frontend_gpe` (scans that did not become keyframes): 1,229,590 / 9,275,810 / 25,397,940;
+/// * `keyframe_scan` (scans that became keyframes): 2,450,150 / 16,864,060 / 21,710,170;
+/// * `backend_working` (back-end steps that optimized, 5 iterations at most): 401,420 /
+///   613,790 / 613,790.
 ///
-/// The ceilings leave about 25 % for compiler and tuning changes.
+/// The ceilings leave about 25 %, except the front-end + GPE p99, which is issue 8's target
+/// itself (10 M instructions: a 10 Hz LiDAR under 10 % of a 1 GHz A9 on average).
 const BUDGETS: [(&str, u64, u64, u64); 4] = [
-    ("push_scan", 1_470_000, 6_400_000, 7_600_000),
-    ("frontend_gpe", 1_380_000, 6_150_000, 7_600_000),
-    ("keyframe_scan", 2_420_000, 6_900_000, 7_200_000),
-    ("backend_working", 550_000, 770_000, 770_000),
+    ("push_scan", 1_660_000, 11_600_000, 31_800_000),
+    ("frontend_gpe", 1_540_000, 10_000_000, 31_800_000),
+    ("keyframe_scan", 3_070_000, 21_100_000, 27_200_000),
+    ("backend_working", 510_000, 770_000, 770_000),
 ];
 
 /// Stack high-water budget (issue 8: at most 64 KiB).
@@ -86,6 +89,7 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         backend_delay_s: 0.0,
         backend_iterations_per_scan: BACKEND_ITERATIONS,
         max_scans: None,
+        stamps: StampPolicy::FileOrder,
         progress: false,
     };
     let input = open_input(&log, &InputOptions::default()).unwrap();

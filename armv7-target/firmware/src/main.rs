@@ -15,7 +15,10 @@ use semihosting::{println, process};
 #[entry]
 fn main() -> ! {
     timer::enable();
-    println!("firmware=cloi-firmware version={}", env!("CARGO_PKG_VERSION"));
+    println!(
+        "firmware=cloi-firmware version={}",
+        env!("CARGO_PKG_VERSION")
+    );
     for section in Section::ALL {
         let start = timer::ticks();
         let result = core::hint::black_box(section.run());

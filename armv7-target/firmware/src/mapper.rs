@@ -28,8 +28,8 @@
 
 use core::fmt::Write as _;
 
-use cloi_core::frontend::{BeamGeometry, GridParams, IcpConfig, KeyframeConfig, PreprocessConfig};
-use cloi_core::mapper::{BackendConfig, BackendStep, LoopConfig, Mapper, MapperConfig, ScanInput};
+use cloi_core::frontend::BeamGeometry;
+use cloi_core::mapper::{BackendStep, Feeder, Mapper, MapperConfig, ScanInput};
 use cloi_core::profile::HomeResources;
 use cloi_core::sensor::log::{LogReader, LogRecord, MAX_BEAMS, MIN_READER_BUFFER};
 use semihosting::fs::File;
@@ -42,50 +42,11 @@ use crate::timer;
 /// Back-end iterations after every scan (`cloi map --backend-iterations`, default 5).
 pub const BACKEND_ITERATIONS_PER_SCAN: u32 = 5;
 
-/// The `home` profile's configuration exactly as `cloi map --profile home` builds it
-/// (`mapper_config(Profile::Home, &MapConfig::preset(Profile::Home))` on the host): the core's
-/// `home` defaults overridden by the host preset's values. The QEMU test compares its `Debug`
-/// form with the host's, so the two cannot drift apart unnoticed.
+/// The `home` profile's configuration: the core's, which `cloi map --profile home` also uses
+/// (a host test checks its preset maps to it). The QEMU test compares its `Debug` form with
+/// the host's, so the two cannot drift apart unnoticed.
 pub fn home_config() -> MapperConfig {
-    let base = MapperConfig::home();
-    MapperConfig {
-        preprocess: PreprocessConfig {
-            voxel_size: 0.05,
-            decimation: 1,
-            ..base.preprocess
-        },
-        max_range: 10.0,
-        icp: IcpConfig {
-            max_iterations: 30,
-            max_correspondence: 0.5,
-            huber: 0.05,
-            min_points: 20,
-            ..base.icp
-        },
-        keyframe: KeyframeConfig {
-            distance: 0.2,
-            angle: 0.35,
-        },
-        grid: GridParams {
-            side: 82,
-            resolution: 0.05,
-            ..base.grid
-        },
-        submap_length: 1.5,
-        loops: LoopConfig {
-            window_max: 1.5,
-            angle_max: 0.5,
-            min_score: 0.55,
-            max_candidates: 2,
-            ..base.loops
-        },
-        backend: BackendConfig {
-            every_keyframes: 50,
-            max_iterations: 20,
-            ..base.backend
-        },
-        ..base
-    }
+    MapperConfig::home()
 }
 
 /// Everything the per-event step keeps between records.
@@ -94,10 +55,9 @@ pub struct State {
     pub mapper: Mapper<'static>,
     /// Decoded ranges of the current scan.
     ranges: &'static mut [f32; MAX_BEAMS],
-    /// A scan carried an odometry pose: separate odometry records are ignored from then on.
-    scans_carry_odometry: bool,
-    /// Stamp of the last scan whose odometry pose was pushed.
-    last_scan_odometry: Option<i64>,
+    /// How events reach the mapper: the same `Feeder` as `cloi map` (odometry on scans, stamps
+    /// in file order, shortest range).
+    feeder: Feeder,
 }
 
 /// What one record did, with the instructions of each call.
@@ -107,6 +67,8 @@ pub struct EventCost {
     pub scan: bool,
     /// The scan was accepted: its real-time output.
     pub output: Option<cloi_core::mapper::FrameOutput>,
+    /// The scan's own stamp (the mapper's may have been moved forward in file order).
+    pub stamp: i64,
     /// Instructions of `push_scan` (front-end, GPE, keyframe, loop search).
     pub push_scan: u64,
     /// Instructions of the back-end step after the scan.
@@ -130,34 +92,23 @@ pub fn process_event(state: &mut State, record: &LogRecord<'_>) -> EventCost {
     let mut cost = EventCost::default();
     match record {
         LogRecord::Odometry(o) => {
-            if !state.scans_carry_odometry {
-                let mapper = &mut state.mapper;
-                let (_, n) = measure(|| mapper.push_odometry(o.stamp.as_nanos(), o.pose));
-                cost.sensors = n;
-            }
+            let (mapper, feeder) = (&mut state.mapper, &mut state.feeder);
+            let (_, n) = measure(|| feeder.odometry(mapper, o.stamp.as_nanos(), o.pose));
+            cost.sensors = n;
         }
         LogRecord::Gyro(g) => {
-            let mapper = &mut state.mapper;
-            let (_, n) = measure(|| mapper.push_gyro(g.stamp.as_nanos(), g.yaw_rate));
+            let (mapper, feeder) = (&mut state.mapper, &mut state.feeder);
+            let (_, n) = measure(|| feeder.gyro(mapper, g.stamp.as_nanos(), g.yaw_rate));
             cost.sensors = n;
         }
         LogRecord::Scan(s) => {
             cost.scan = true;
-            let stamp = s.meta.stamp.as_nanos();
-            if let Some(odom) = s.meta.odom {
-                state.scans_carry_odometry = true;
-                if state.last_scan_odometry != Some(stamp) {
-                    let mapper = &mut state.mapper;
-                    let (_, n) = measure(|| mapper.push_odometry(stamp, odom));
-                    cost.sensors = n;
-                    state.last_scan_odometry = Some(stamp);
-                }
-            }
+            cost.stamp = s.meta.stamp.as_nanos();
             // The decoder checked the beam count against MAX_BEAMS, so this cannot fail.
             let ranges = s.ranges_into(&mut state.ranges[..]).unwrap_or(&[]);
             let g = s.meta.geometry;
             let input = ScanInput {
-                stamp,
+                stamp: s.meta.stamp.as_nanos(),
                 ranges,
                 geometry: BeamGeometry {
                     angle_min: g.angle_min,
@@ -167,8 +118,9 @@ pub fn process_event(state: &mut State, record: &LogRecord<'_>) -> EventCost {
                 },
                 mounting: s.meta.laser_offset,
             };
-            let mapper = &mut state.mapper;
-            let (result, n) = measure(|| mapper.push_scan(&input, false));
+            let (mapper, feeder) = (&mut state.mapper, &mut state.feeder);
+            // The scan's own odometry pose (if any) is pushed inside, as on the host.
+            let (result, n) = measure(|| feeder.scan(mapper, &input, s.meta.odom, false));
             cost.push_scan = n;
             cost.output = result.ok();
             let (step, n) = measure(|| mapper.step_backend(BACKEND_ITERATIONS_PER_SCAN));
@@ -254,8 +206,7 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
     let mut state = State {
         mapper,
         ranges,
-        scans_carry_odometry: false,
-        last_scan_odometry: None,
+        feeder: Feeder::new(true, config.min_range),
     };
 
     let mut path = [0u8; 512];
@@ -319,7 +270,7 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         let _ = writeln!(
             out,
             "scan {} {:e} {:e} {:e} {} {} {}",
-            o.stamp,
+            cost.stamp,
             o.pose.x,
             o.pose.y,
             o.pose.theta,

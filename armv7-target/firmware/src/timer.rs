@@ -25,8 +25,13 @@ pub fn enable() {
 pub fn ticks() -> u64 {
     loop {
         // SAFETY: as in `enable`: plain reads of the timer's counter registers.
-        let (hi, lo, hi2) =
-            unsafe { (read_volatile(COUNTER_HI), read_volatile(COUNTER_LO), read_volatile(COUNTER_HI)) };
+        let (hi, lo, hi2) = unsafe {
+            (
+                read_volatile(COUNTER_HI),
+                read_volatile(COUNTER_LO),
+                read_volatile(COUNTER_HI),
+            )
+        };
         if hi == hi2 {
             return (u64::from(hi) << 32) | u64::from(lo);
         }

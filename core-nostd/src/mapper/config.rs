@@ -166,6 +166,9 @@ pub struct MapperConfig {
     pub preprocess: PreprocessConfig,
     /// Ranges beyond this are dropped, metres (also bounded by the scanner's own maximum).
     pub max_range: f32,
+    /// Ranges below this are dropped, metres (when the scanner's own minimum is lower; applied
+    /// by [`Feeder`](crate::mapper::Feeder)).
+    pub min_range: f32,
     /// Wheel odometry and gyro fusion.
     pub odometry: OdometryConfig,
     /// Scan-to-map ICP of the front-end.
@@ -211,6 +214,7 @@ impl Default for MapperConfig {
                 ..PreprocessConfig::default()
             },
             max_range: 40.0,
+            min_range: 0.1,
             odometry: OdometryConfig::default(),
             icp: IcpConfig {
                 allow_degenerate: true,
@@ -235,12 +239,20 @@ impl Default for MapperConfig {
 }
 
 impl MapperConfig {
-    /// Defaults with 4.1 m submaps for small homes (the `home` profile).
+    /// Defaults for small homes (the `home` profile): 4.1 m submaps, a 10 m LiDAR, loop
+    /// searches within 1.5 m and 0.5 rad (a home is small: the drift between revisits is).
     pub fn home() -> Self {
+        let base = MapperConfig::default();
         MapperConfig {
             grid: GridParams::HOME,
             submap_length: 1.5,
-            ..MapperConfig::default()
+            max_range: 10.0,
+            loops: LoopConfig {
+                window_max: 1.5,
+                angle_max: 0.5,
+                ..base.loops
+            },
+            ..base
         }
     }
 }

@@ -35,6 +35,7 @@
 //! submap that newer ones cover best.
 
 pub mod config;
+pub mod feed;
 pub mod gpe;
 mod loops;
 mod pool;
@@ -49,6 +50,7 @@ use crate::solver::{self, Method, SolveError, SolverBuffers, SolverOptions};
 use crate::storage::NodeId;
 
 pub use config::{BackendConfig, FrontendNoise, LoopConfig, MapperConfig};
+pub use feed::Feeder;
 pub use gpe::GpeConfig;
 
 /// Points of the front-end's local point map.

@@ -22,7 +22,7 @@ use cloi_core::frontend::{BeamGeometry, GridParams, IcpConfig, KeyframeConfig};
 use cloi_core::geom::Se2;
 use cloi_core::graph::EdgeKind;
 use cloi_core::mapper::{
-    BackendStep, FrameOutput, Mapper, MapperConfig, MapperError, MapperStats, ScanInput,
+    BackendStep, Feeder, FrameOutput, Mapper, MapperConfig, MapperError, MapperStats, ScanInput,
 };
 use cloi_core::profile::{AirportResources, HomeResources, MapperResources, OfficeResources};
 use serde_json::json;
@@ -95,6 +95,7 @@ pub fn mapper_config(profile: Profile, c: &MapConfig) -> MapperConfig {
             ..base.preprocess
         },
         max_range: c.preprocess.range_max,
+        min_range: c.preprocess.range_min,
         icp: IcpConfig {
             max_iterations: c.icp.max_iterations,
             max_correspondence: c.icp.max_correspondence,
@@ -185,71 +186,34 @@ struct Driver {
     rejected: u64,
     deadline: Duration,
     late: bool,
-    scans_carry_odometry: bool,
-    /// Repair stamps that step back (file order is the true order).
-    file_order: bool,
-    /// Shortest valid range (the configuration's, when the input says less), metres.
-    range_min: f32,
-    /// Last stamp given to the mapper per stream (odometry, gyro, scans).
-    clocks: [Option<i64>; 3],
-    stamps_repaired: u64,
+    /// How events reach the mapper (shared with the firmware).
+    feeder: Feeder,
 }
 
 impl Driver {
-    /// The stamp the mapper gets for an event of stream `k` (0 odometry, 1 gyro, 2 scans)
-    /// stamped `t`: with file-order stamps, a stamp not after the stream's previous one is
-    /// moved to 1 µs after it (counted); otherwise `t` as it is (the core rejects it).
-    fn clock(&mut self, k: usize, t: i64) -> i64 {
-        if !self.file_order {
-            return t;
-        }
-        let c = match self.clocks[k] {
-            Some(last) if t <= last => {
-                self.stamps_repaired += 1;
-                last + 1_000
-            }
-            _ => t,
-        };
-        self.clocks[k] = Some(c);
-        c
-    }
-
     fn feed(&mut self, mapper: &mut Mapper<'_>, ev: &SensorEvent, started: Instant) {
         match ev {
             SensorEvent::Odometry { t_ns, pose } => {
-                if !self.scans_carry_odometry {
-                    let t = self.clock(0, *t_ns);
-                    let _ = mapper.push_odometry(t, *pose);
-                }
+                let _ = self.feeder.odometry(mapper, *t_ns, *pose);
             }
             SensorEvent::Gyro { t_ns, yaw_rate } => {
-                let t = self.clock(1, *t_ns);
-                let _ = mapper.push_gyro(t, *yaw_rate);
+                let _ = self.feeder.gyro(mapper, *t_ns, *yaw_rate);
             }
             SensorEvent::Scan(s) => {
-                let stamp = self.clock(2, s.t_ns);
-                // CARMEN scan lines carry the odometry at the scan's own time: the most exact
-                // seed. Once they do, the separate odometry lines are not used (they are logged
-                // at other times and would only be interpolated).
-                if let Some(odom) = s.odom {
-                    self.scans_carry_odometry = true;
-                    let t = self.clock(0, stamp);
-                    let _ = mapper.push_odometry(t, odom);
-                }
                 let input = ScanInput {
-                    stamp,
+                    stamp: s.t_ns,
                     ranges: &s.ranges,
                     geometry: BeamGeometry {
                         angle_min: s.angle_min,
                         angle_increment: s.angle_increment,
-                        range_min: s.range_min.max(self.range_min),
+                        range_min: s.range_min,
                         range_max: s.range_max,
                     },
                     mounting: s.laser_offset,
                 };
                 let late = std::mem::take(&mut self.late);
                 let t0 = Instant::now();
-                let result = mapper.push_scan(&input, late);
+                let result = self.feeder.scan(mapper, &input, s.odom, late);
                 self.scan_us.push(t0.elapsed().as_secs_f64() * 1e6);
                 match result {
                     Ok(out) => self.accept(mapper, &out, s.t_ns),
@@ -341,11 +305,10 @@ fn drive(
         rejected: 0,
         deadline: Duration::from_micros(settings.config.gpe.deadline_us),
         late: false,
-        scans_carry_odometry: false,
-        file_order: settings.stamps == StampPolicy::FileOrder,
-        range_min: settings.config.preprocess.range_min,
-        clocks: [None; 3],
-        stamps_repaired: 0,
+        feeder: Feeder::new(
+            settings.stamps == StampPolicy::FileOrder,
+            mapper.config().min_range,
+        ),
     };
     let stats_handle = input.stats_handle();
     let max_scans = settings.max_scans.unwrap_or(u64::MAX);
@@ -492,7 +455,7 @@ fn drive(
         records: driver.records,
         keyframe_frontend: driver.keyframe_frontend,
         scan_us: driver.scan_us,
-        stamps_repaired: driver.stamps_repaired,
+        stamps_repaired: driver.feeder.stamps_repaired,
         rejected: driver.rejected,
         first_stamp: driver.first_stamp,
         last_stamp: driver.last_stamp,
@@ -656,5 +619,22 @@ pub fn default_out(input: Option<&Path>) -> PathBuf {
     match input.and_then(|p| p.file_stem()) {
         Some(stem) => PathBuf::from("out").join(stem),
         None => PathBuf::from("out").join("sim-home"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The host presets are the core's configurations: the firmware, which has no host, uses
+    /// `MapperConfig::home()` and must map exactly as `cloi map --profile home`.
+    #[test]
+    fn presets_are_the_core_configurations() {
+        for (p, core) in [
+            (Profile::Home, MapperConfig::home()),
+            (Profile::Office, MapperConfig::default()),
+        ] {
+            assert_eq!(mapper_config(p, &MapConfig::preset(p)), core, "{p:?}");
+        }
     }
 }
