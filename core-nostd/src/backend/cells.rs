@@ -223,9 +223,12 @@ pub fn select(
     // Geometric terms and the normalisers.
     let mut i_max: f64 = 0.0;
     let mut g_max: f64 = 0.0;
-    for (i, c) in candidates.iter().enumerate() {
-        let Some(&k) = keys.get(i) else { continue };
-        let mut g = 0.0;
+    // Cell by cell: the (up to eight) adjacent cells are looked up once per cell, not once per
+    // node; each node still sums them in the same order.
+    for m in cells {
+        let k = m.key;
+        let mut adjacent = [usize::MAX; 8];
+        let mut slot = 0;
         for dx in -1..=1 {
             for dy in -1..=1 {
                 if dx == 0 && dy == 0 {
@@ -235,19 +238,33 @@ pub fn select(
                     ix: k.ix.saturating_add(dx),
                     iy: k.iy.saturating_add(dy),
                 };
-                if let Ok(p) = cells.binary_search_by_key(&nk, |m| m.key) {
-                    if let Some(m) = cells.get(p) {
-                        g += m.squared_distances_to(c.x, c.y);
-                    }
+                if let (Ok(p), Some(a)) = (
+                    cells.binary_search_by_key(&nk, |m| m.key),
+                    adjacent.get_mut(slot),
+                ) {
+                    *a = p;
                 }
+                slot += 1;
             }
         }
-        if let Some(slot) = s.geometric.get_mut(i) {
-            *slot = g;
-        }
-        g_max = g_max.max(g);
-        if c.information.is_finite() {
-            i_max = i_max.max(c.information);
+        let (start, end) = (m.start as usize, m.start as usize + m.count as usize);
+        for &i in order.get(start..end).unwrap_or(&[]) {
+            let Some(c) = candidates.get(i as usize) else {
+                continue;
+            };
+            let mut g = 0.0;
+            for &p in &adjacent {
+                if let Some(a) = cells.get(p) {
+                    g += a.squared_distances_to(c.x, c.y);
+                }
+            }
+            if let Some(slot) = s.geometric.get_mut(i as usize) {
+                *slot = g;
+            }
+            g_max = g_max.max(g);
+            if c.information.is_finite() {
+                i_max = i_max.max(c.information);
+            }
         }
     }
     let norm = |v: f64, max: f64| {

@@ -138,6 +138,12 @@ pub struct Marginal {
     a_inv: [Matrix3<f64>; MAX_BLANKET],
     w: [Matrix3<f64>; MAX_BLANKET],
     s_inv: Matrix3<f64>,
+    /// `W_i S^-1`, so that an off-diagonal covariance block costs one product.
+    ws: [Matrix3<f64>; MAX_BLANKET],
+    /// The diagonal covariance blocks `Sigma_ii`.
+    sigma_diag: [Matrix3<f64>; MAX_BLANKET],
+    /// Heading of each blanket node at the linearization point and its `(cos, sin)`.
+    trig: [(f64, (f64, f64)); MAX_BLANKET],
 }
 
 impl Marginal {
@@ -174,12 +180,16 @@ impl Marginal {
         let (Some(wi), Some(wj)) = (self.w.get(i), self.w.get(j)) else {
             return Matrix3::zeros();
         };
-        let shared = wi * self.s_inv * wj.transpose();
         if i == j {
-            self.a_inv.get(i).map_or(shared, |a| a + shared)
-        } else {
-            shared
+            return self.sigma_diag.get(i).copied().unwrap_or_else(|| {
+                let shared = wi * self.s_inv * wj.transpose();
+                self.a_inv.get(i).map_or(shared, |a| a + shared)
+            });
         }
+        // `ws[i] = W_i S^-1`: the same product order as `W_i S^-1 W_j^T`.
+        self.ws
+            .get(i)
+            .map_or_else(|| wi * self.s_inv * wj.transpose(), |v| v * wj.transpose())
     }
 }
 
@@ -207,7 +217,18 @@ pub fn marginalize(poses: &[Se2], factors: &[LocalFactor]) -> Result<Marginal, M
         a_inv: [z; MAX_BLANKET],
         w: [z; MAX_BLANKET],
         s_inv: z,
+        ws: [z; MAX_BLANKET],
+        sigma_diag: [z; MAX_BLANKET],
+        trig: [(0.0, (1.0, 0.0)); MAX_BLANKET],
     };
+    for ((t, x), p) in out
+        .trig
+        .iter_mut()
+        .zip(trig.iter().skip(1))
+        .zip(poses.iter().skip(1))
+    {
+        *t = (p.theta, *x);
+    }
     for f in factors {
         let first = usize::from(f.from);
         let (ja, jb) = factor_jacobians_trig(
@@ -246,6 +267,16 @@ pub fn marginalize(poses: &[Se2], factors: &[LocalFactor]) -> Result<Marginal, M
     }
     if k >= 2 {
         out.s_inv = spd_inverse(&symmetrize(&s)).ok_or(MarginalizeError::SingularMarginal)?;
+        for i in 1..k {
+            let (Some(w), Some(a_inv)) = (out.w.get(i).copied(), out.a_inv.get(i).copied()) else {
+                break;
+            };
+            let v = w * out.s_inv;
+            if let (Some(vs), Some(d)) = (out.ws.get_mut(i), out.sigma_diag.get_mut(i)) {
+                *vs = v;
+                *d = a_inv + v * w.transpose();
+            }
+        }
     }
     Ok(out)
 }
@@ -305,9 +336,15 @@ pub fn chow_liu_edges(
     if k > MAX_BLANKET || marginal.blanket_len() != k {
         return Err(MarginalizeError::BlanketTooLarge);
     }
+    // The blanket's headings were the marginal's linearization point: reuse their (cos, sin)
+    // when the poses are the same ones.
     let mut trig = [(1.0, 0.0); MAX_BLANKET];
-    for (t, x) in trig.iter_mut().zip(blanket) {
-        *t = (libm::cos(x.theta), libm::sin(x.theta));
+    for ((t, x), known) in trig.iter_mut().zip(blanket).zip(marginal.trig.iter()) {
+        *t = if known.0.to_bits() == x.theta.to_bits() {
+            known.1
+        } else {
+            (libm::cos(x.theta), libm::sin(x.theta))
+        };
     }
     // Pair weights are computed on the fly; the k - 1 tree pairs are recomputed below rather
     // than storing all k (k - 1) / 2 covariances.
