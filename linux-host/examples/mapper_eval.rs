@@ -154,8 +154,10 @@ fn run() -> Result<()> {
     let refp = path.with_file_name(name.replace(".clf", ".gfs_reference_poses.txt"));
     if let Ok(reference) = PlanarTrajectory::load_reference(&refp) {
         let rels = relations_from_reference(&reference, 1.0);
+        // The reference holds the laser's poses: compare in the laser's frame.
+        let laser = Se2::new(offset_x, 0.0, 0.0);
         for (n, t) in [("final", &fin), ("gpe", &gpe), ("frontend", &fe)] {
-            let s = score(t, &rels, 0.0)?;
+            let s = score(&t.in_sensor_frame(&laser), &rels, 0.0)?;
             println!(
                 "{n}: trans {:.4} +- {:.4} m rot {:.3} deg pairs {} missing {}",
                 s.trans_mean_m, s.trans_std_m, s.rot_mean_deg, s.pairs_used, s.pairs_missing

@@ -183,4 +183,45 @@ fn eval_relations_and_ref_print_json() {
     assert_eq!(v["relations"], 2);
     assert_eq!(v["pairs_used"], 2);
     assert!((v["trans_mean_m"].as_f64().unwrap() - 0.05).abs() < 1e-12);
+
+    // A quarter turn on the spot; the reference holds the poses of a laser 0.04 m behind the
+    // robot's centre: 0.04 * sqrt(2) m of error unless the trajectory is moved to the laser.
+    let half = std::f64::consts::FRAC_1_SQRT_2;
+    std::fs::write(
+        &tum,
+        format!(
+            "1.5 0 0 0 0 0 0 1
+2.5 0 0 0 0 0 {half} {half}
+"
+        ),
+    )
+    .unwrap();
+    std::fs::write(
+        &reference,
+        format!(
+            "1.5 0 -0.04 0 0
+2.5 1 0 -0.04 {}
+",
+            std::f64::consts::FRAC_PI_2
+        ),
+    )
+    .unwrap();
+    for (offset, expected) in [(None, 0.04 * 2f64.sqrt()), (Some("-0.04,0,0"), 0.0)] {
+        let mut args: Vec<&std::ffi::OsStr> = vec![
+            "eval".as_ref(),
+            "ref".as_ref(),
+            "--trajectory".as_ref(),
+            tum.as_os_str(),
+            "--reference".as_ref(),
+            reference.as_os_str(),
+        ];
+        if let Some(o) = offset {
+            args.extend(["--sensor-offset".as_ref(), o.as_ref()]);
+        }
+        let (ok, v, stderr) = cloi(&args);
+        assert!(ok, "{stderr}");
+        assert_eq!(v["pairs_used"], 1);
+        let err = v["trans_mean_m"].as_f64().unwrap();
+        assert!((err - expected).abs() < 1e-9, "{offset:?}: {v}");
+    }
 }

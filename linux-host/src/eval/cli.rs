@@ -5,11 +5,13 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::{Args, Subcommand};
+use cloi_core::Se2;
 use serde_json::json;
 
 use super::metrics::{ate, rpe, DeltaUnit};
 use super::relations::{load_relations, relations_from_reference, score, PlanarTrajectory};
 use super::traj::{Alignment, Trajectory};
+use crate::map::input::parse_pose;
 
 /// The `cloi eval` subcommands.
 #[derive(Debug, Subcommand)]
@@ -52,6 +54,10 @@ pub struct RelationsArgs {
     /// Time stamp tolerance (s); 0 matches exactly.
     #[arg(long, default_value_t = 0.0)]
     pub tolerance: f64,
+    /// Pose on the robot (`X,Y,THETA`: m, m, rad) of the sensor whose poses the relations
+    /// describe; the trajectory (the robot's) is moved into that frame before scoring.
+    #[arg(long, value_name = "X,Y,THETA", value_parser = parse_pose, allow_hyphen_values = true)]
+    pub sensor_offset: Option<Se2>,
 }
 
 /// Arguments of `cloi eval ate`.
@@ -113,6 +119,21 @@ pub struct RefArgs {
     /// Time stamp tolerance (s); 0 matches exactly.
     #[arg(long, default_value_t = 0.0)]
     pub tolerance: f64,
+    /// Pose of the laser on the robot (`X,Y,THETA`: m, m, rad). GMapping's corrected logs,
+    /// hence the reference poses, hold the laser's poses; the trajectory (the robot's, as
+    /// `cloi map` writes it) is moved into the laser's frame before scoring. `cloi map`
+    /// reports the mounting it used as `input.laser_offset` in `report.json` (fr079: -0.04,
+    /// 0, 0; intel and mit-csail: 0).
+    #[arg(long, value_name = "X,Y,THETA", value_parser = parse_pose, allow_hyphen_values = true)]
+    pub sensor_offset: Option<Se2>,
+}
+
+/// The trajectory in the frame of the sensor at `offset`, if any.
+fn in_frame(traj: PlanarTrajectory, offset: Option<Se2>) -> PlanarTrajectory {
+    match offset {
+        Some(o) => traj.in_sensor_frame(&o),
+        None => traj,
+    }
 }
 
 /// Runs an eval subcommand, printing JSON to `out`.
@@ -125,7 +146,7 @@ pub fn run(cmd: &EvalCommand, out: &mut dyn Write) -> Result<()> {
             serde_json::to_value(crate::prune::eval_arps(&a.original, &a.pruned, a.as_is)?)?
         }
         EvalCommand::Relations(a) => {
-            let traj = PlanarTrajectory::load_tum(&a.trajectory)?;
+            let traj = in_frame(PlanarTrajectory::load_tum(&a.trajectory)?, a.sensor_offset);
             let rels = load_relations(&a.relations)?;
             serde_json::to_value(score(&traj, &rels, a.tolerance)?)?
         }
@@ -147,11 +168,12 @@ pub fn run(cmd: &EvalCommand, out: &mut dyn Write) -> Result<()> {
             )?)?
         }
         EvalCommand::Ref(a) => {
-            let traj = PlanarTrajectory::load_tum(&a.trajectory)?;
+            let traj = in_frame(PlanarTrajectory::load_tum(&a.trajectory)?, a.sensor_offset);
             let reference = PlanarTrajectory::load_reference(&a.reference)?;
             let rels = relations_from_reference(&reference, a.max_distance);
             let mut v = serde_json::to_value(score(&traj, &rels, a.tolerance)?)?;
             v["max_distance_m"] = json!(a.max_distance);
+            v["sensor_offset"] = json!(a.sensor_offset.map(|o| [o.x, o.y, o.theta]));
             v["reference_poses"] = json!(reference.poses.len());
             v["relations"] = json!(rels.len());
             v
