@@ -216,7 +216,8 @@ fn eval_relations_and_ref_print_json() {
             reference.as_os_str(),
         ];
         if let Some(o) = offset {
-            args.extend(["--sensor-offset".as_ref(), o.as_ref()]);
+            args.push("--sensor-offset".as_ref());
+            args.push(o.as_ref());
         }
         let (ok, v, stderr) = cloi(&args);
         assert!(ok, "{stderr}");
