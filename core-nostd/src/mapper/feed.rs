@@ -8,7 +8,7 @@
 //!   previous one of its stream (counted); without it, the mapper rejects the event (counted);
 //! * **shortest range**: the configured one applies when the scan's own is shorter.
 
-use super::{FrameOutput, Mapper, MapperError, ScanInput};
+use super::{FrameOutput, Mapper, MapperError, Probe, ScanInput};
 use crate::geom::Se2;
 
 /// The feeding state of one run.
@@ -86,6 +86,22 @@ impl Feeder {
         odometry: Option<Se2>,
         deadline_passed: bool,
     ) -> Result<FrameOutput, MapperError> {
+        self.scan_probed(m, scan, odometry, deadline_passed, &mut ())
+    }
+
+    /// [`Feeder::scan`] through [`Mapper::push_scan_probed`] (the odometry push before it is
+    /// not part of any section).
+    ///
+    /// # Errors
+    /// The mapper's rejection (counted there).
+    pub fn scan_probed(
+        &mut self,
+        m: &mut Mapper<'_>,
+        scan: &ScanInput<'_>,
+        odometry: Option<Se2>,
+        deadline_passed: bool,
+        probe: &mut impl Probe,
+    ) -> Result<FrameOutput, MapperError> {
         let stamp = self.clock(2, scan.stamp);
         if let Some(pose) = odometry {
             self.scans_carry_odometry = true;
@@ -95,6 +111,6 @@ impl Feeder {
         let mut input = *scan;
         input.stamp = stamp;
         input.geometry.range_min = input.geometry.range_min.max(self.range_min);
-        m.push_scan(&input, deadline_passed)
+        m.push_scan_probed(&input, deadline_passed, probe)
     }
 }

@@ -53,6 +53,34 @@ pub use config::{BackendConfig, FrontendNoise, LoopConfig, MapperConfig};
 pub use feed::Feeder;
 pub use gpe::GpeConfig;
 
+/// The parts of [`Mapper::push_scan`], in the order they run, for a caller that measures them
+/// (the firmware counts the instructions of each under QEMU).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Section {
+    /// Checks, preprocessing and ICP against the local map (entered first, on every scan).
+    Frontend,
+    /// The GPE update or the worst-case prediction (accepted scans).
+    Gpe,
+    /// Keyframe selection and, for a keyframe, the frame node, submap and local map updates.
+    Keyframe,
+    /// The loop-closure search (keyframes whose serial is a multiple of `loops.every`).
+    LoopSearch,
+    /// `push_scan` returns (entered last, on every scan).
+    Done,
+}
+
+/// Told when [`Mapper::push_scan_probed`] enters each [`Section`]. It must not touch the
+/// mapper; the unit type is the probe that does nothing.
+pub trait Probe {
+    /// `section` starts now (and the previous one ended).
+    fn enter(&mut self, section: Section);
+}
+
+impl Probe for () {
+    #[inline(always)]
+    fn enter(&mut self, _section: Section) {}
+}
+
 /// Points of the front-end's local point map.
 pub const LOCAL_MAP_POINTS: usize = 4096;
 /// Reference points of a loop-closure refinement (occupied cells of one submap).
@@ -533,6 +561,32 @@ impl<'r> Mapper<'r> {
         scan: &ScanInput<'_>,
         deadline_passed: bool,
     ) -> Result<FrameOutput, MapperError> {
+        self.push_scan_probed(scan, deadline_passed, &mut ())
+    }
+
+    /// [`Mapper::push_scan`], telling `probe` when each [`Section`] starts: `Frontend` first,
+    /// `Done` last, always; the result does not depend on the probe.
+    ///
+    /// # Errors
+    /// As [`Mapper::push_scan`].
+    pub fn push_scan_probed(
+        &mut self,
+        scan: &ScanInput<'_>,
+        deadline_passed: bool,
+        probe: &mut impl Probe,
+    ) -> Result<FrameOutput, MapperError> {
+        probe.enter(Section::Frontend);
+        let out = self.scan_sections(scan, deadline_passed, probe);
+        probe.enter(Section::Done);
+        out
+    }
+
+    fn scan_sections(
+        &mut self,
+        scan: &ScanInput<'_>,
+        deadline_passed: bool,
+        probe: &mut impl Probe,
+    ) -> Result<FrameOutput, MapperError> {
         if self.st.last_stamp.is_some_and(|t| scan.stamp <= t) {
             self.st.stats.scans_out_of_order += 1;
             return Err(MapperError::OutOfOrder);
@@ -621,10 +675,12 @@ impl<'r> Mapper<'r> {
         self.st.frontend = pose;
 
         // Real-time pose.
+        probe.enter(Section::Gpe);
         let (gpe_pose, predicted) = self.estimate(&gpe_prev, &step, deadline_passed);
         self.st.last = Some((pose, gpe_pose, odom));
 
         // Keyframe.
+        probe.enter(Section::Keyframe);
         let mut out = FrameOutput {
             stamp: scan.stamp,
             pose: gpe_pose,
@@ -640,6 +696,7 @@ impl<'r> Mapper<'r> {
                 out.keyframe = true;
                 out.reference_serial = serial;
                 if serial % self.cfg.loops.every == 0 {
+                    probe.enter(Section::LoopSearch);
                     out.loops = self.close_loops(serial);
                 }
             }

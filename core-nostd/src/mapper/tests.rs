@@ -119,9 +119,25 @@ struct Run {
     stats: MapperStats,
     final_poses: Vec<Se2>,
     truth: Vec<Se2>,
+    /// The sections entered, per scan (empty without a probe).
+    sections: Vec<Vec<Section>>,
+}
+
+/// A probe that records the sections entered.
+#[derive(Default)]
+struct Recorder(Vec<Section>);
+
+impl Probe for Recorder {
+    fn enter(&mut self, section: Section) {
+        self.0.push(section);
+    }
 }
 
 fn run(config: MapperConfig) -> Run {
+    run_probed(config, false)
+}
+
+fn run_probed(config: MapperConfig, probed: bool) -> Run {
     let truth = path();
     let mut res: Box<TestResources> = Box::default();
     let mut mapper = res.mapper(config).expect("resources fit");
@@ -129,6 +145,7 @@ fn run(config: MapperConfig) -> Run {
     let mut odom = Se2::IDENTITY;
     let mut outputs = Vec::new();
     let mut serial_of = Vec::new();
+    let mut sections = Vec::new();
     for (i, p) in truth.iter().enumerate() {
         if i > 0 {
             let inc = truth[i - 1].between(p);
@@ -138,17 +155,21 @@ fn run(config: MapperConfig) -> Run {
         let t = 1_000_000_000 + i as i64 * 100_000_000;
         mapper.push_odometry(t, odom).expect("odometry in order");
         let ranges = scan_at(p);
-        let out = mapper
-            .push_scan(
-                &ScanInput {
-                    stamp: t,
-                    ranges: &ranges,
-                    geometry: geometry(),
-                    mounting: Se2::IDENTITY,
-                },
-                false,
-            )
-            .expect("scan accepted");
+        let input = ScanInput {
+            stamp: t,
+            ranges: &ranges,
+            geometry: geometry(),
+            mounting: Se2::IDENTITY,
+        };
+        let out = if probed {
+            let mut rec = Recorder::default();
+            let out = mapper.push_scan_probed(&input, false, &mut rec);
+            sections.push(rec.0);
+            out
+        } else {
+            mapper.push_scan(&input, false)
+        }
+        .expect("scan accepted");
         let f = mapper
             .node_of(out.reference_serial)
             .and_then(|n| mapper.nodes().get(n))
@@ -168,6 +189,7 @@ fn run(config: MapperConfig) -> Run {
         stats: mapper.stats(),
         final_poses,
         truth,
+        sections,
     }
 }
 
@@ -231,6 +253,30 @@ fn runs_are_bit_identical() {
         let b = run(config());
         assert_eq!(a.outputs, b.outputs);
         assert_eq!(a.final_poses, b.final_poses);
+    });
+}
+
+#[test]
+fn a_probe_sees_every_section_in_order_and_changes_nothing() {
+    with_stack(|| {
+        let cfg = config();
+        let plain = run(cfg);
+        let probed = run_probed(cfg, true);
+        assert_eq!(plain.outputs, probed.outputs);
+        assert_eq!(plain.final_poses, probed.final_poses);
+        assert_eq!(probed.sections.len(), probed.outputs.len());
+        let mut searches = 0;
+        for (i, (seq, out)) in probed.sections.iter().zip(&probed.outputs).enumerate() {
+            let mut want = std::vec![Section::Frontend, Section::Gpe, Section::Keyframe];
+            if out.keyframe && out.reference_serial % cfg.loops.every == 0 {
+                want.push(Section::LoopSearch);
+                searches += 1;
+            }
+            want.push(Section::Done);
+            assert_eq!(seq, &want, "scan {i}: {out:?}");
+        }
+        assert!(searches > 10, "{searches} loop searches");
+        assert!(probed.stats.loop_closures >= 2, "{:?}", probed.stats);
     });
 }
 
