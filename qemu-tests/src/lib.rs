@@ -60,6 +60,48 @@ pub fn build_firmware() -> Result<PathBuf> {
     Ok(elf)
 }
 
+/// The robot computer's Linux target (Cortex-A9, hard float).
+pub const LINUX_TARGET: &str = "armv7-unknown-linux-gnueabihf";
+
+/// Builds the `cloi` binary in release mode for `target` (`None`: the host) with this
+/// workspace's cargo settings (the ARM linker of `.cargo/config.toml`) and returns its path.
+///
+/// # Errors
+/// Cargo fails or the binary is missing.
+pub fn build_cloi(target: Option<&str>) -> Result<PathBuf> {
+    let root = workspace_root();
+    let mut cmd = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()));
+    cmd.current_dir(&root)
+        .env_remove("RUSTFLAGS")
+        .env_remove("CARGO_ENCODED_RUSTFLAGS")
+        .args([
+            "build",
+            "--release",
+            "--locked",
+            "-p",
+            "cloi-host",
+            "--bin",
+            "cloi",
+        ]);
+    if let Some(t) = target {
+        cmd.args(["--target", t]);
+    }
+    let status = cmd.status().context("running cargo to build cloi")?;
+    if !status.success() {
+        bail!("cloi build failed ({status})");
+    }
+    let dir =
+        std::env::var_os("CARGO_TARGET_DIR").map_or_else(|| root.join("target"), PathBuf::from);
+    let bin = match target {
+        Some(t) => dir.join(t).join("release").join("cloi"),
+        None => dir.join("release").join("cloi"),
+    };
+    if !bin.is_file() {
+        bail!("{} missing after the build", bin.display());
+    }
+    Ok(bin)
+}
+
 /// Path of a firmware binary after [`build_firmware`]: `cloi-firmware` (the fixed workload),
 /// `cloi-replay` (a `.cloilog` streamed through semihosting) or `cloi-mapper` (the mapper on
 /// a `.cloilog`).
@@ -123,12 +165,20 @@ pub struct FirmwareRun {
 /// # Errors
 /// QEMU cannot be started, times out or exits non-zero.
 pub fn run_firmware_raw(elf: &Path, cmdline: &str) -> Result<String> {
+    run_firmware_timeout(elf, cmdline, 600)
+}
+
+/// [`run_firmware_raw`] with a timeout of `seconds` (the full-log benchmarks run longer).
+///
+/// # Errors
+/// As [`run_firmware_raw`].
+pub fn run_firmware_timeout(elf: &Path, cmdline: &str, seconds: u32) -> Result<String> {
     let mut qemu = qemu_command(elf);
     if !cmdline.is_empty() {
         qemu.arg("-append").arg(cmdline);
     }
     let out = Command::new("timeout")
-        .arg("600")
+        .arg(seconds.to_string())
         .arg(qemu.get_program())
         .args(qemu.get_args())
         .output()

@@ -7,7 +7,7 @@ use std::path::Path;
 use anyhow::{bail, ensure, Context, Result};
 
 use crate::replay::Percentiles;
-use crate::{field, run_firmware_raw};
+use crate::{field, run_firmware_timeout};
 
 /// One accepted scan of the pose file.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -44,7 +44,8 @@ pub struct MapperRun {
     pub rejected: u64,
     /// The `key=value` counters of the `mapper_records=` line.
     pub counters: BTreeMap<String, u64>,
-    /// Instruction percentiles per section (`push_scan`, `frontend_gpe`, `keyframe_scan`,
+    /// Instruction percentiles per section (`push_scan`, `frontend_gpe`, `keyframe_scan`, the
+    /// parts `frontend`, `gpe`, `keyframe_update`, `loop_search`,
     /// `backend_step`, `backend_working`).
     pub sections: BTreeMap<String, Percentiles>,
     /// SYS stack high-water mark, bytes.
@@ -97,6 +98,14 @@ pub fn parse_pose_file(text: &str) -> Result<(Vec<ScanLine>, Vec<KeyframeLine>)>
 /// # Errors
 /// QEMU fails, the firmware reports an error, or its output or pose file is malformed.
 pub fn run_mapper(elf: &Path, log: &Path, out: &Path) -> Result<MapperRun> {
+    run_mapper_timeout(elf, log, out, 600)
+}
+
+/// [`run_mapper`] with a timeout of `seconds`.
+///
+/// # Errors
+/// As [`run_mapper`].
+pub fn run_mapper_timeout(elf: &Path, log: &Path, out: &Path, seconds: u32) -> Result<MapperRun> {
     for p in [log, out] {
         let s = p.to_string_lossy();
         ensure!(
@@ -105,7 +114,11 @@ pub fn run_mapper(elf: &Path, log: &Path, out: &Path) -> Result<MapperRun> {
         );
     }
     let _ = std::fs::remove_file(out);
-    let text = run_firmware_raw(elf, &format!("log={} out={}", log.display(), out.display()))?;
+    let text = run_firmware_timeout(
+        elf,
+        &format!("log={} out={}", log.display(), out.display()),
+        seconds,
+    )?;
     let mut run = MapperRun {
         config: String::new(),
         scans: 0,

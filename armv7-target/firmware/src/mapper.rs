@@ -29,7 +29,9 @@
 use core::fmt::Write as _;
 
 use cloi_core::frontend::BeamGeometry;
-use cloi_core::mapper::{BackendStep, Feeder, Mapper, MapperConfig, ScanInput};
+use cloi_core::mapper::{
+    BackendStep, Feeder, Mapper, MapperConfig, Probe, ScanInput, Section,
+};
 use cloi_core::profile::HomeResources;
 use cloi_core::sensor::log::{LogReader, LogRecord, MAX_BEAMS, MIN_READER_BUFFER};
 use semihosting::fs::File;
@@ -77,6 +79,44 @@ pub struct EventCost {
     pub backend_idle: bool,
     /// Instructions of odometry and gyro pushes.
     pub sensors: u64,
+    /// Instructions of each part of `push_scan`, indexed by [`section_index`]: front-end,
+    /// GPE, keyframe, loop search (zero for a part that did not run).
+    pub sections: [u64; 4],
+    /// The loop-closure search ran during the scan.
+    pub loop_search: bool,
+}
+
+/// The slot of a measured [`Section`] in [`EventCost::sections`].
+pub fn section_index(section: Section) -> Option<usize> {
+    match section {
+        Section::Frontend => Some(0),
+        Section::Gpe => Some(1),
+        Section::Keyframe => Some(2),
+        Section::LoopSearch => Some(3),
+        Section::Done => None,
+    }
+}
+
+/// A [`Probe`] that charges the instructions between two sections to the first. The timer
+/// reads at the boundaries (a few dozen instructions) are charged too.
+#[derive(Default)]
+struct SectionTimer {
+    current: Option<usize>,
+    since: u64,
+    counts: [u64; 4],
+    loop_search: bool,
+}
+
+impl Probe for SectionTimer {
+    fn enter(&mut self, section: Section) {
+        let now = timer::ticks();
+        if let Some(slot) = self.current.and_then(|c| self.counts.get_mut(c)) {
+            *slot += (now - self.since) * timer::INSTRUCTIONS_PER_TICK;
+        }
+        self.loop_search |= section == Section::LoopSearch;
+        self.current = section_index(section);
+        self.since = timer::ticks();
+    }
 }
 
 fn measure<T>(f: impl FnOnce() -> T) -> (T, u64) {
@@ -120,8 +160,13 @@ pub fn process_event(state: &mut State, record: &LogRecord<'_>) -> EventCost {
             };
             let (mapper, feeder) = (&mut state.mapper, &mut state.feeder);
             // The scan's own odometry pose (if any) is pushed inside, as on the host.
-            let (result, n) = measure(|| feeder.scan(mapper, &input, s.meta.odom, false));
+            let mut probe = SectionTimer::default();
+            let (result, n) = measure(|| {
+                feeder.scan_probed(mapper, &input, s.meta.odom, false, &mut probe)
+            });
             cost.push_scan = n;
+            cost.sections = probe.counts;
+            cost.loop_search = probe.loop_search;
             cost.output = result.ok();
             let (step, n) = measure(|| mapper.step_backend(BACKEND_ITERATIONS_PER_SCAN));
             cost.backend = n;
@@ -140,23 +185,26 @@ static READ_BUFFER: TakeOnce<[u8; MIN_READER_BUFFER + CHUNK]> =
 static SCAN_COUNTS: TakeOnce<[u32; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
 static BACKEND_COUNTS: TakeOnce<[u32; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
 static FLAGS: TakeOnce<[u8; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
+/// Per scan: instructions of each part of `push_scan` (see [`EventCost::sections`]).
+static SECTION_COUNTS: TakeOnce<[[u32; 4]; MAX_SCANS]> = TakeOnce::new([[0; 4]; MAX_SCANS]);
 static SCRATCH: TakeOnce<[u32; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
 static OUT: TakeOnce<OutBuffer> = TakeOnce::new(OutBuffer::new());
 
 const FLAG_ACCEPTED: u8 = 1;
 const FLAG_KEYFRAME: u8 = 2;
 const FLAG_BACKEND_WORKED: u8 = 4;
+const FLAG_LOOP_SEARCH: u8 = 8;
 
 /// Prints `stat=NAME n= min= median= p99= max= mean=` over the counts whose flags match.
 fn print_stat(
     name: &str,
-    counts: &[u32],
+    counts: impl Iterator<Item = u32>,
     flags: &[u8],
     keep: impl Fn(u8) -> bool,
     scratch: &mut [u32],
 ) {
     let mut n = 0;
-    for (&c, &f) in counts.iter().zip(flags) {
+    for (c, &f) in counts.zip(flags) {
         if keep(f) {
             if let Some(slot) = scratch.get_mut(n) {
                 *slot = c;
@@ -193,6 +241,9 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         FLAGS.take(),
         SCRATCH.take(),
     ) else {
+        return Err("mapper started twice");
+    };
+    let Some(section_counts) = SECTION_COUNTS.take() else {
         return Err("mapper started twice");
     };
     let config = home_config();
@@ -242,18 +293,25 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         if !cost.scan {
             continue;
         }
-        if let (Some(s), Some(b), Some(f)) = (
+        if let (Some(s), Some(b), Some(f), Some(parts)) = (
             scan_counts.get_mut(scans),
             backend_counts.get_mut(scans),
             flags.get_mut(scans),
+            section_counts.get_mut(scans),
         ) {
             *s = u32::try_from(cost.push_scan).unwrap_or(u32::MAX);
+            for (p, &c) in parts.iter_mut().zip(&cost.sections) {
+                *p = u32::try_from(c).unwrap_or(u32::MAX);
+            }
             *b = u32::try_from(cost.backend).unwrap_or(u32::MAX);
             *f = if cost.backend_idle {
                 0
             } else {
                 FLAG_BACKEND_WORKED
             };
+            if cost.loop_search {
+                *f |= FLAG_LOOP_SEARCH;
+            }
             if let Some(o) = &cost.output {
                 *f |= FLAG_ACCEPTED | if o.keyframe { FLAG_KEYFRAME } else { 0 };
             }
@@ -307,7 +365,8 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
     println!(
         "mapper_records={records} mapper_scans={scans} mapper_rejected={rejected} \
          keyframes={} nodes={} edges={} submaps={} loop_closures={} optimizations={} \
-         backend_steps={} gpe_solved={} gpe_predicted={}",
+         backend_steps={} gpe_solved={} gpe_predicted={} keyframes_dropped={} \
+         submaps_recycled={} prunes={} nodes_pruned={} icp_failures={} loop_searches={}",
         s.keyframes,
         graph.node_count(),
         graph.edge_count(),
@@ -316,7 +375,13 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         s.optimizations,
         s.backend_steps,
         s.gpe_solved,
-        s.gpe_predicted
+        s.gpe_predicted,
+        s.keyframes_dropped,
+        s.submaps_recycled,
+        s.prunes,
+        s.nodes_pruned,
+        s.icp_failures,
+        s.loop_searches
     );
     let kept = scans.min(MAX_SCANS);
     let (sc, bc, fl) = (
@@ -324,19 +389,29 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         &backend_counts[..kept],
         &flags[..kept],
     );
-    print_stat("push_scan", sc, fl, |f| f & FLAG_ACCEPTED != 0, scratch);
+    let sc = || sc.iter().copied();
+    let accepted = |f: u8| f & FLAG_ACCEPTED != 0;
+    print_stat("push_scan", sc(), fl, accepted, scratch);
     print_stat(
         "frontend_gpe",
-        sc,
+        sc(),
         fl,
-        |f| f & FLAG_ACCEPTED != 0 && f & FLAG_KEYFRAME == 0,
+        |f| accepted(f) && f & FLAG_KEYFRAME == 0,
         scratch,
     );
-    print_stat("keyframe_scan", sc, fl, |f| f & FLAG_KEYFRAME != 0, scratch);
-    print_stat("backend_step", bc, fl, |_| true, scratch);
+    print_stat("keyframe_scan", sc(), fl, |f| f & FLAG_KEYFRAME != 0, scratch);
+    // The parts of push_scan (SectionTimer): front-end and GPE on every accepted scan, the
+    // keyframe part on every accepted scan (the selection test; a keyframe's updates on
+    // keyframes), the loop search where it ran.
+    let part = |i: usize| section_counts[..kept].iter().map(move |p| p[i]);
+    print_stat("frontend", part(0), fl, accepted, scratch);
+    print_stat("gpe", part(1), fl, accepted, scratch);
+    print_stat("keyframe_update", part(2), fl, |f| f & FLAG_KEYFRAME != 0, scratch);
+    print_stat("loop_search", part(3), fl, |f| f & FLAG_LOOP_SEARCH != 0, scratch);
+    print_stat("backend_step", bc.iter().copied(), fl, |_| true, scratch);
     print_stat(
         "backend_working",
-        bc,
+        bc.iter().copied(),
         fl,
         |f| f & FLAG_BACKEND_WORKED != 0,
         scratch,
