@@ -277,6 +277,7 @@ fn apply_overrides(cfg: &mut MapperConfig, spec: &str) -> Result<()> {
             "submap_length" => cfg.submap_length = f,
             "min_fitness" => cfg.min_fitness = f as f32,
             "turn_reseed" => cfg.turn_reseed = f,
+            "icp_iterations" => cfg.icp.max_iterations = f as u16,
             "kf_distance" => cfg.keyframe.distance = f,
             "kf_angle" => cfg.keyframe.angle = f,
             "icp_huber" => cfg.icp.huber = f,

@@ -35,6 +35,12 @@ impl<'a> KdTree<'a> {
         KdTree { points }
     }
 
+    /// A tree over points that [`KdTree::build`] arranged and nothing changed since (the
+    /// caller keeps track; a wrong arrangement gives wrong answers, never a panic).
+    pub(crate) fn arranged(points: &'a [ScanPoint]) -> KdTree<'a> {
+        KdTree { points }
+    }
+
     /// The points, in tree order.
     pub fn points(&self) -> &'a [ScanPoint] {
         self.points

@@ -16,6 +16,8 @@ use crate::geom::Se2;
 pub struct PointMap<const N: usize> {
     points: ScanPoints<N>,
     voxel: f32,
+    /// The points are in tree order (arranged by the last [`PointMap::tree`], unchanged since).
+    arranged: bool,
     /// Points that did not fit, over the map's life.
     pub overflow: u32,
 }
@@ -26,6 +28,7 @@ impl<const N: usize> PointMap<N> {
         PointMap {
             points: heapless::Vec::new(),
             voxel,
+            arranged: false,
             overflow: 0,
         }
     }
@@ -33,11 +36,13 @@ impl<const N: usize> PointMap<N> {
     /// Forgets every point (a new submap starts).
     pub fn clear(&mut self) {
         self.points.clear();
+        self.arranged = false;
     }
 
     /// Adds `scan` (robot frame) taken at `pose`, keeping points within `max_radius` of the
     /// robot, then merges voxels.
     pub fn insert(&mut self, pose: &Se2, scan: &[ScanPoint], max_radius: f32) {
+        self.arranged = false;
         let (c, s) = (libm::cos(pose.theta) as f32, libm::sin(pose.theta) as f32);
         let (x, y) = (pose.x as f32, pose.y as f32);
         let r2 = max_radius * max_radius;
@@ -67,8 +72,13 @@ impl<const N: usize> PointMap<N> {
         &self.points
     }
 
-    /// A search tree over the points (reorders them).
+    /// A search tree over the points (reorders them the first time after a change; later
+    /// calls reuse that order).
     pub fn tree(&mut self) -> KdTree<'_> {
+        if self.arranged {
+            return KdTree::arranged(&self.points);
+        }
+        self.arranged = true;
         KdTree::build(&mut self.points)
     }
 }
@@ -105,5 +115,41 @@ mod tests {
         m.insert(&Se2::IDENTITY, &many, 100.0);
         assert_eq!(m.points().len(), 8);
         assert_eq!(m.overflow, 12);
+    }
+
+    /// The tree is arranged once per change and reused; after each insertion it answers as a
+    /// brute-force search over the points.
+    #[test]
+    fn the_tree_is_rebuilt_after_a_change_and_reused_otherwise() {
+        let mut m = PointMap::<256>::new(0.05);
+        let wall: heapless::Vec<ScanPoint, 64> =
+            (0..64).map(|i| pt(2.0, -3.0 + i as f32 * 0.1)).collect();
+        let queries = [[1.7f32, 0.33], [0.0, 0.0], [2.5, -2.0], [1.9, 2.9]];
+        for (k, pose) in [
+            Se2::IDENTITY,
+            Se2::new(0.3, -0.2, 0.7),
+            Se2::new(-1.0, 0.5, 2.0),
+        ]
+        .iter()
+        .enumerate()
+        {
+            m.insert(pose, &wall, 10.0);
+            assert!(!m.arranged, "insertion {k} leaves the order stale");
+            for _ in 0..2 {
+                let points: heapless::Vec<ScanPoint, 256> = m.points().iter().copied().collect();
+                let tree = m.tree();
+                for q in queries {
+                    let brute = points
+                        .iter()
+                        .map(|p| {
+                            (p.p[0] - q[0]) * (p.p[0] - q[0]) + (p.p[1] - q[1]) * (p.p[1] - q[1])
+                        })
+                        .fold(f32::INFINITY, f32::min);
+                    let got = tree.nearest(q, 100.0).map(|(_, d)| d);
+                    assert_eq!(got, Some(brute), "insertion {k}, query {q:?}");
+                }
+                assert!(m.arranged);
+            }
+        }
     }
 }
