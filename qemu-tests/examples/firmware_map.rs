@@ -15,6 +15,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use cloi_core::Se2;
 use cloi_host::eval::relations::{relations_from_reference, score, PlanarTrajectory};
+use cloi_host::io::carmen::{CarmenReader, CarmenRecord};
 use cloi_qemu_tests::mapper::{run_mapper_timeout, MapperRun};
 use cloi_qemu_tests::{build_firmware, firmware_elf, workspace_root};
 
@@ -28,6 +29,22 @@ const SECTIONS: [(&str, &str); 7] = [
     ("push_scan", "accepted scans"),
     ("backend_working", "back-end steps that optimized"),
 ];
+
+/// The front laser's mounting from the log's `robot_frontlaser_offset` parameter (forward
+/// offset only, as CARMEN records it), read up to the first laser line.
+fn laser_offset(clf: &std::path::Path) -> Result<Se2> {
+    let mut x = 0.0;
+    for rec in CarmenReader::open(clf, false)? {
+        match rec? {
+            CarmenRecord::Param { name, value } if name == "robot_frontlaser_offset" => {
+                x = value.parse().unwrap_or(0.0);
+            }
+            CarmenRecord::Laser(_) => break,
+            _ => {}
+        }
+    }
+    Ok(Se2::new(x, 0.0, 0.0))
+}
 
 fn main() -> Result<()> {
     let mut logs: Vec<String> = std::env::args().skip(1).collect();
@@ -59,17 +76,22 @@ fn main() -> Result<()> {
         let run = run_mapper_timeout(&elf, &cloilog, &dir.join("poses.txt"), 7200)?;
         let wall = t0.elapsed().as_secs_f64();
         std::fs::write(dir.join("firmware.log"), &run.log)?;
-        // The real-time trajectory as emitted on the A9, against the reference relations.
+        // The real-time trajectory as emitted on the A9, against the reference relations, in
+        // the laser's frame (the reference holds laser poses; fr079's laser is off-centre).
         let reference = clf.with_file_name(format!("{name}.gfs_reference_poses.txt"));
         let error = if reference.is_file() {
             let reference = PlanarTrajectory::load_reference(&reference)?;
             let rels = relations_from_reference(&reference, 1.0);
-            let poses: Vec<(i64, Se2)> = run
+            let mut poses: Vec<(i64, Se2)> = run
                 .poses
                 .iter()
                 .map(|p| (p.t_ns, Se2::new(p.pose[0], p.pose[1], p.pose[2])))
                 .collect();
-            Some(score(&PlanarTrajectory { poses }, &rels, 0.0)?.trans_mean_m)
+            // Sorted by time, as the scoring expects (intel's stamps step back in the file).
+            poses.sort_by_key(|p| p.0);
+            let laser = laser_offset(&clf)?;
+            let trajectory = PlanarTrajectory { poses }.in_sensor_frame(&laser);
+            Some(score(&trajectory, &rels, 0.0)?.trans_mean_m)
         } else {
             None
         };
