@@ -120,7 +120,7 @@ impl Default for LoopConfig {
             window_min: 0.5,
             window_max: 2.5,
             window_from_anchor: true,
-            window_lever: 0.05,
+            window_lever: 0.03,
             angle_min: 0.2,
             angle_max: 0.6,
             min_score: 0.55,
