@@ -152,8 +152,9 @@ fn run() -> Result<()> {
     }
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("");
     let refp = path.with_file_name(name.replace(".clf", ".gfs_reference_poses.txt"));
-    if let Ok(reference) = PlanarTrajectory::load_reference(&refp) {
-        let rels = relations_from_reference(&reference, 1.0);
+    let reference = PlanarTrajectory::load_reference(&refp).ok();
+    if let Some(reference) = reference.as_ref() {
+        let rels = relations_from_reference(reference, 1.0);
         // The reference holds the laser's poses: compare in the laser's frame.
         let laser = Se2::new(offset_x, 0.0, 0.0);
         for (n, t) in [("final", &fin), ("gpe", &gpe), ("frontend", &fe)] {
@@ -187,6 +188,14 @@ fn run() -> Result<()> {
             )?;
         }
     }
+    if std::env::var_os("NODES").is_some() {
+        for m in mapper.nodes() {
+            eprintln!(
+                "NODE {} {} {} {} {}",
+                m.serial, m.stamp, m.frontend.x, m.frontend.y, m.frontend.theta
+            );
+        }
+    }
     if std::env::var_os("LOOPS").is_some() {
         let g = mapper.graph();
         for e in g
@@ -199,14 +208,57 @@ fn run() -> Result<()> {
                 g.nodes()[e.to.0 as usize].pose,
             );
             let r = e.residual(&a, &b);
+            // Error of the measurement against the reference (laser poses moved to the base).
+            let (ma, mb) = (
+                &mapper.nodes()[e.from.0 as usize],
+                &mapper.nodes()[e.to.0 as usize],
+            );
+            let laser = Se2::new(offset_x, 0.0, 0.0);
+            // Reference pose of a node: the nearest reference pose carried to the node by the
+            // front-end's own motion (the reference holds one pose in ~15 scans).
+            let truth_of = |m: &cloi_core::mapper::NodeMeta| -> Option<Se2> {
+                let rf = reference.as_ref()?;
+                let i = rf.poses.partition_point(|p| p.0 < m.stamp);
+                let (tr, pr) = [i.checked_sub(1), Some(i)]
+                    .iter()
+                    .flatten()
+                    .filter_map(|&k| rf.poses.get(k))
+                    .min_by_key(|p| (p.0 - m.stamp).abs())?;
+                let j = fe.poses.partition_point(|p| p.0 < *tr);
+                let (tf, pf) = fe.poses.get(j)?;
+                if (tf - tr).abs() > 1_000_000 || (tr - m.stamp).abs() > 3_000_000_000 {
+                    return None;
+                }
+                Some(
+                    pr.compose(&laser.inverse())
+                        .compose(&pf.between(&m.frontend)),
+                )
+            };
+            let truth = {
+                let ra = truth_of(ma);
+                let rb = truth_of(mb);
+                (|| {
+                    let (ra, rb) = (ra?, rb?);
+                    let t = ra.between(&rb);
+                    let d = t.between(&e.measurement);
+                    Some((d.x.hypot(d.y), d.theta))
+                })()
+            };
+            let (te, tt) = truth.unwrap_or((f64::NAN, f64::NAN));
             println!(
-                "loop {} -> {}: residual {:.3} {:.3} {:.3} chi2 {:.1}",
+                "loop {} -> {}: residual {:.3} {:.3} {:.3} chi2 {:.1} truth_err {:.3} {:.4} dt {:.0} s info {:.0} {:.0} {:.0}",
                 e.from.0,
                 e.to.0,
                 r[0],
                 r[1],
                 r[2],
-                e.chi2_of(&r)
+                e.chi2_of(&r),
+                te,
+                tt,
+                (mb.stamp - ma.stamp) as f64 * 1e-9,
+                e.information[(0, 0)],
+                e.information[(1, 1)],
+                e.information[(2, 2)]
             );
         }
     }
@@ -295,6 +347,9 @@ fn apply_overrides(cfg: &mut MapperConfig, spec: &str) -> Result<()> {
             "loop_max_rms" => cfg.loops.max_rms = f,
             "loop_agree_xy" => cfg.loops.agree_xy = f,
             "loop_agree_theta" => cfg.loops.agree_theta = f,
+            "window_anchor" => cfg.loops.window_from_anchor = f != 0.0,
+            "window_lever" => cfg.loops.window_lever = f,
+            "null_scale" => cfg.loops.null_scale = f as f32,
             "loop_candidates" => cfg.loops.max_candidates = f as u8,
             "loop_sigma_xy" => cfg.loops.min_sigma[0] = f,
             "loop_sigma_theta" => cfg.loops.min_sigma[1] = f,

@@ -32,15 +32,15 @@ const BACKEND_ITERATIONS: u32 = 5;
 /// searches that found no candidate yet, 3 back-end optimizations during the log), with the
 /// local map's k-d tree reused between keyframes:
 /// * `push_scan` (front-end + GPE + keyframe + loop search, every accepted scan): median
-///   1,148,910, p99 9,246,010, max 25,092,230;
-/// * `frontend_gpe` (scans that did not become keyframes): 1,043,910 / 9,246,010 / 25,092,230;
-/// * `keyframe_scan` (scans that became keyframes): 2,166,040 / 16,785,910 / 21,470,720;
+///   1,150,780, p99 9,247,680, max 25,094,170;
+/// * `frontend_gpe` (scans that did not become keyframes): 1,045,610 / 9,247,680 / 25,094,170;
+/// * `keyframe_scan` (scans that became keyframes): 2,168,170 / 16,787,580 / 21,472,380;
 /// * the parts of `push_scan` (the firmware's `Probe`): `frontend` (checks, preprocessing,
-///   ICP; every scan) 1,044,930 / 9,241,500 / 25,087,130; `gpe` (the GPE update) 3,500 /
+///   ICP; every scan) 1,046,530 / 9,243,180 / 25,089,090; `gpe` (the GPE update) 3,500 /
 ///   4,400 / 4,410; `keyframe_update` (frame node, submap and local map of a keyframe)
-///   985,740 / 1,587,880 / 1,683,680; `loop_search` 2,470 / 5,980 / 5,980;
-/// * `backend_working` (back-end steps that optimized, 5 iterations at most): 401,420 /
-///   613,790 / 613,790.
+///   985,740 / 1,587,890 / 1,683,670; `loop_search` 2,520 / 6,230 / 6,230;
+/// * `backend_working` (back-end steps that optimized, 5 iterations at most): 401,430 /
+///   613,800 / 613,800.
 ///
 /// The ceilings leave about 25 %, except the front-end + GPE p99, which is issue 8's target
 /// itself (10 M instructions: a 10 Hz LiDAR under 10 % of a 1 GHz A9 on average). The GPE

@@ -64,12 +64,21 @@ pub struct LoopConfig {
     /// searched (it is linked by odometry already).
     pub min_keyframe_gap: u32,
     /// Search window half-width: `sigmas` standard deviations of the position uncertainty
-    /// accumulated since the last loop closure, clamped to `[window_min, window_max]` metres.
+    /// accumulated since the candidate submap's anchor (`window_from_anchor`) or since the
+    /// last loop closure, clamped to `[window_min, window_max]` metres.
     pub sigmas: f64,
     /// Smallest translation window, metres.
     pub window_min: f64,
     /// Largest translation window, metres.
     pub window_max: f64,
+    /// The window of a candidate submap is the uncertainty of the front-end motion since the
+    /// submap's anchor (instead of since the last loop closure, which says nothing about the
+    /// drift relative to an old submap when the last loop was a local one).
+    pub window_from_anchor: bool,
+    /// Lever arm of the heading uncertainty in the position window, as a share of the path
+    /// length: a heading error made along the way displaces the end by about this lever
+    /// times the path.
+    pub window_lever: f64,
     /// Smallest rotation window, radians.
     pub angle_min: f64,
     /// Largest rotation window, radians.
@@ -109,7 +118,9 @@ impl Default for LoopConfig {
             min_keyframe_gap: 30,
             sigmas: 3.0,
             window_min: 0.5,
-            window_max: 4.0,
+            window_max: 2.5,
+            window_from_anchor: true,
+            window_lever: 0.03,
             angle_min: 0.2,
             angle_max: 0.6,
             min_score: 0.55,
@@ -240,7 +251,9 @@ impl Default for MapperConfig {
 
 impl MapperConfig {
     /// Defaults for small homes (the `home` profile): 4.1 m submaps, a 10 m LiDAR, loop
-    /// searches within 1.5 m and 0.5 rad (a home is small: the drift between revisits is).
+    /// searches within 1.5 m and 0.5 rad (a home is small: the drift between revisits is),
+    /// windows from the motion since the last loop closure (the cheaper search, measured
+    /// against the firmware's instruction budgets).
     pub fn home() -> Self {
         let base = MapperConfig::default();
         MapperConfig {
@@ -250,6 +263,8 @@ impl MapperConfig {
             loops: LoopConfig {
                 window_max: 1.5,
                 angle_max: 0.5,
+                window_from_anchor: false,
+                window_lever: 0.0,
                 ..base.loops
             },
             ..base

@@ -3,8 +3,15 @@
 //! Candidates are the finished submaps whose area contains the keyframe's estimated position,
 //! widened by the search window, and whose anchor is old enough not to be a neighbour along the
 //! odometry chain. The window is `sigmas` standard deviations of the front-end uncertainty
-//! accumulated since the last loop closure (a Mahalanobis gate in the metric of the motion
-//! model), clamped to a range. For each candidate, nearest first, a branch-and-bound
+//! (a Mahalanobis gate in the metric of the motion model), clamped to a range, accumulated
+//! either since the candidate submap was started (`window_from_anchor`, the office preset) or
+//! since the last loop closure (the home preset). The first is the drift between the submap
+//! and the keyframe as far as the front-end knows: a loop closure, true or false, is only
+//! judged by the back-end later, and a local one says nothing about the drift relative to an
+//! old submap, so the window must not shrink with it (on intel it did, and the first big loops
+//! fell outside 0.5 m windows while the true offsets were 1.3 to 1.6 m). With
+//! `window_lever`, the position window also holds the heading uncertainty times a lever arm
+//! proportional to the path. For each candidate, nearest first, a branch-and-bound
 //! correlative search over the window finds the best pose of the scan in the submap; ICP
 //! against the submap's occupied cells refines it without the degenerate-direction fallback
 //! (a corridor match that does not fix every direction is rejected); the fitness, the RMS
@@ -36,13 +43,11 @@ impl Mapper<'_> {
             return 0;
         };
         let lc = self.cfg.loops;
-        let cov = self.cfg.noise.covariance(
+        let since_loop = (
             self.st.path - self.st.path_at_loop,
             self.st.rotation - self.st.rotation_at_loop,
         );
-        let window = (lc.sigmas * libm::sqrt(cov[(0, 0)].max(cov[(1, 1)])))
-            .clamp(lc.window_min, lc.window_max);
-        let angle = (lc.sigmas * libm::sqrt(cov[(2, 2)])).clamp(lc.angle_min, lc.angle_max);
+        let (window, angle) = self.search_window(since_loop.0, since_loop.1);
         let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
 
         let mut candidates = heapless::Vec::<(f64, usize, u32), MAX_CANDIDATES>::new();
@@ -53,6 +58,7 @@ impl Mapper<'_> {
             let Some(ga) = self.keyframe_pose(m.anchor_serial) else {
                 continue;
             };
+            let (window, _) = self.window_to(slot, (window, angle));
             let local = ga.between(&gk);
             if libm::fabs(local.x) > half + window || libm::fabs(local.y) > half + window {
                 continue;
@@ -87,6 +93,7 @@ impl Mapper<'_> {
                 continue;
             };
             self.st.stats.loop_searches += 1;
+            let (window, angle) = self.window_to(slot, (window, angle));
             let seed = ga.between(&gk);
             let Some((z, info)) = self.match_in_submap(slot, &seed, window, angle) else {
                 continue;
@@ -149,6 +156,34 @@ impl Mapper<'_> {
             }
         }
         added
+    }
+
+    /// Half-widths `(metres, radians)` of the search for a front-end motion of path length
+    /// `path` and rotation `rotation`: `sigmas` standard deviations of the motion model,
+    /// clamped.
+    fn search_window(&self, path: f64, rotation: f64) -> (f64, f64) {
+        let lc = &self.cfg.loops;
+        let cov = self.cfg.noise.covariance(path, rotation);
+        let lever = lc.window_lever * libm::fabs(path);
+        let var_xy = cov[(0, 0)].max(cov[(1, 1)]) + cov[(2, 2)] * lever * lever;
+        (
+            (lc.sigmas * libm::sqrt(var_xy)).clamp(lc.window_min, lc.window_max),
+            (lc.sigmas * libm::sqrt(cov[(2, 2)])).clamp(lc.angle_min, lc.angle_max),
+        )
+    }
+
+    /// The search window for a match against the submap in `slot`: from the front-end motion
+    /// since the submap was started when `window_from_anchor`, else `global` (from the motion
+    /// since the last loop closure).
+    fn window_to(&self, slot: usize, global: (f64, f64)) -> (f64, f64) {
+        if !self.cfg.loops.window_from_anchor {
+            return global;
+        }
+        let Some(m) = self.submaps.get(slot) else {
+            return global;
+        };
+        let [path, rotation] = m.anchor_motion;
+        self.search_window(self.st.path - path, self.st.rotation - rotation)
     }
 
     /// Whether two matches against one submap agree with the front-end motion between their

@@ -134,6 +134,9 @@ pub struct SubmapMeta {
     pub anchor_frontend: Se2,
     /// Keyframes inserted.
     pub keyframes: u32,
+    /// Path length and absolute rotation of the robot (front-end) when the submap was started:
+    /// the drift relative to the submap grows from there.
+    pub anchor_motion: [f64; 2],
 }
 
 impl SubmapMeta {
@@ -144,6 +147,7 @@ impl SubmapMeta {
         anchor_serial: 0,
         anchor_frontend: Se2::IDENTITY,
         keyframes: 0,
+        anchor_motion: [0.0; 2],
     };
 }
 
@@ -907,6 +911,7 @@ impl<'r> Mapper<'r> {
             anchor_serial: serial,
             anchor_frontend: *pose,
             keyframes: 0,
+            anchor_motion: [self.st.path, self.st.rotation],
         };
         if self.st.pyramid_of == Some(slot as u16) {
             self.st.pyramid_of = None;

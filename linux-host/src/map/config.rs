@@ -229,7 +229,7 @@ impl MapConfig {
                     new_submap_distance: 3.0,
                 },
                 loop_closure: LoopClosureSection {
-                    search_window_xy: 4.0,
+                    search_window_xy: 2.5,
                     search_window_theta: 0.6,
                     ..home.loop_closure
                 },
@@ -251,7 +251,7 @@ impl MapConfig {
                     new_submap_distance: 3.0,
                 },
                 loop_closure: LoopClosureSection {
-                    search_window_xy: 4.0,
+                    search_window_xy: 2.5,
                     search_window_theta: 0.6,
                     ..home.loop_closure
                 },
