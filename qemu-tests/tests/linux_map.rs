@@ -14,7 +14,7 @@ use std::process::{Command, Stdio};
 use cloi_qemu_tests::{build_cloi, workspace_root, LINUX_TARGET};
 
 /// Scans of intel.clf mapped (office profile, the default for files): enough for loop
-/// closures (6) and many back-end optimizations (17); about a minute under qemu-arm.
+/// closures (216) and many back-end optimizations (99); about a minute under qemu-arm.
 const SCANS: &str = "3500";
 
 fn map(cmd: &mut Command, clf: &Path, out: &Path) {
