@@ -307,7 +307,7 @@ pub fn search(
                 if v.is_nan() {
                     FAR
                 } else {
-                    libm::floorf(v).clamp(-FAR as f32, FAR as f32) as i32
+                    crate::geom::floor_to_i32(v).clamp(-FAR, FAR)
                 }
             };
             let _ = cells.push([clamp(g[0]), clamp(g[1])]);

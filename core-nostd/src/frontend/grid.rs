@@ -17,7 +17,7 @@
 use core::fmt;
 
 use crate::frontend::scan::{fit_normal, ScanPoint};
-use crate::geom::Se2;
+use crate::geom::{floor_to_i32, Se2};
 
 /// Points (and sensor positions) farther than this many cells from the submap are ignored
 /// (NaN included), so cell arithmetic never overflows.
@@ -197,7 +197,7 @@ impl<S: AsRef<[i8]> + AsMut<[i8]>> Submap<S> {
         if !(libm::fabsf(start[0]) < FAR_CELLS && libm::fabsf(start[1]) < FAR_CELLS) {
             return Err(GridError::InvalidPose);
         }
-        let (sx, sy) = (libm::floorf(start[0]) as i32, libm::floorf(start[1]) as i32);
+        let (sx, sy) = (floor_to_i32(start[0]), floor_to_i32(start[1]));
         let mut stats = InsertStats::default();
         // Longest ray walked: a diagonal of the grid plus the start's distance to it.
         let side = self.params.side as i32;
@@ -208,7 +208,7 @@ impl<S: AsRef<[i8]> + AsMut<[i8]>> Submap<S> {
             if !(libm::fabsf(e[0]) < FAR_CELLS && libm::fabsf(e[1]) < FAR_CELLS) {
                 continue;
             }
-            let (ex, ey) = (libm::floorf(e[0]) as i32, libm::floorf(e[1]) as i32);
+            let (ex, ey) = (floor_to_i32(e[0]), floor_to_i32(e[1]));
             // Bresenham from the start cell, excluding the end cell.
             let (dx, dy) = ((ex - sx).abs(), -(ey - sy).abs());
             let (stx, sty) = (if sx < ex { 1 } else { -1 }, if sy < ey { 1 } else { -1 });
@@ -244,7 +244,7 @@ impl<S: AsRef<[i8]> + AsMut<[i8]>> Submap<S> {
                 stats.outside += 1;
                 continue;
             }
-            if self.update(libm::floorf(e[0]) as i32, libm::floorf(e[1]) as i32, hit) {
+            if self.update(floor_to_i32(e[0]), floor_to_i32(e[1]), hit) {
                 stats.hits += 1;
             } else {
                 stats.outside += 1;

@@ -62,8 +62,10 @@ fn nearest<'a>(
     best: &mut Option<(&'a ScanPoint, f32)>,
     best_d2: &mut f32,
 ) {
-    let mid = pts.len() / 2;
-    let Some(node) = pts.get(mid) else {
+    let Some((left, rest)) = pts.split_at_checked(pts.len() / 2) else {
+        return;
+    };
+    let Some((node, right)) = rest.split_first() else {
         return;
     };
     let (dx, dy) = (node.p[0] - q[0], node.p[1] - q[1]);
@@ -72,14 +74,20 @@ fn nearest<'a>(
         *best_d2 = d2;
         *best = Some((node, d2));
     }
-    let diff = q[axis] - node.p[axis];
-    let (near, far) = if diff < 0.0 {
-        (&pts[..mid], pts.get(mid + 1..).unwrap_or(&[]))
+    let diff = if axis == 0 {
+        q[0] - node.p[0]
     } else {
-        (pts.get(mid + 1..).unwrap_or(&[]), &pts[..mid])
+        q[1] - node.p[1]
     };
-    nearest(near, axis ^ 1, q, best, best_d2);
-    if diff * diff < *best_d2 {
+    let (near, far) = if diff < 0.0 {
+        (left, right)
+    } else {
+        (right, left)
+    };
+    if !near.is_empty() {
+        nearest(near, axis ^ 1, q, best, best_d2);
+    }
+    if !far.is_empty() && diff * diff < *best_d2 {
         nearest(far, axis ^ 1, q, best, best_d2);
     }
 }

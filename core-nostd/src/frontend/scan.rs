@@ -281,8 +281,8 @@ fn estimate_normals<const N: usize>(
 
 fn voxel_key(p: &[f32; 2], inv: f32) -> (i32, i32) {
     (
-        libm::floorf(p[0] * inv) as i32,
-        libm::floorf(p[1] * inv) as i32,
+        crate::geom::floor_to_i32(p[0] * inv),
+        crate::geom::floor_to_i32(p[1] * inv),
     )
 }
 
