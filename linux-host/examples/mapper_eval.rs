@@ -10,7 +10,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use cloi_core::frontend::BeamGeometry;
 use cloi_core::mapper::{MapperConfig, ScanInput};
-use cloi_core::profile::OfficeResources;
+use cloi_core::profile::{HomeResources, OfficeResources};
 use cloi_core::Se2;
 use cloi_host::eval::relations::{relations_from_reference, score, PlanarTrajectory};
 use cloi_host::io::carmen::{CarmenReader, CarmenRecord};
@@ -43,12 +43,23 @@ fn run() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let path = PathBuf::from(args.get(1).context("usage: mapper_eval LOG.clf [MAX]")?);
     let max: usize = args.get(2).map_or(Ok(usize::MAX), |s| s.parse())?;
-    let mut res = Box::new(OfficeResources::new());
-    let mut cfg = MapperConfig::default();
+    let mut cfg = match std::env::var("PROFILE").as_deref() {
+        Ok("home") => MapperConfig::home(),
+        _ => MapperConfig::default(),
+    };
     if let Ok(over) = std::env::var("CFG") {
         apply_overrides(&mut cfg, &over)?;
     }
-    let mut mapper = res.mapper(cfg).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let home_res;
+    let office_res;
+    let mapper = if std::env::var("PROFILE").as_deref() == Ok("home") {
+        home_res = Box::leak(Box::new(HomeResources::new()));
+        home_res.mapper(cfg)
+    } else {
+        office_res = Box::leak(Box::new(OfficeResources::new()));
+        office_res.mapper(cfg)
+    };
+    let mut mapper = mapper.map_err(|e| anyhow::anyhow!("{e}"))?;
     let mut offset_x = 0.0;
     let mut records: Vec<(i64, u32, Se2, Se2, Se2)> = Vec::new();
     let keep_order = std::env::var_os("STAMP_AS_IS").is_none();
@@ -329,6 +340,10 @@ fn apply_overrides(cfg: &mut MapperConfig, spec: &str) -> Result<()> {
             "submap_length" => cfg.submap_length = f,
             "min_fitness" => cfg.min_fitness = f as f32,
             "turn_reseed" => cfg.turn_reseed = f,
+            "turn_reseed_rms" => cfg.turn_reseed_rms = f,
+            "stall_xy" => cfg.stall_motion.get_or_insert([0.01, 0.01])[0] = f,
+            "stall_theta" => cfg.stall_motion.get_or_insert([0.01, 0.01])[1] = f,
+            "stall_off" => cfg.stall_motion = None,
             "icp_iterations" => cfg.icp.max_iterations = f as u16,
             "kf_distance" => cfg.keyframe.distance = f,
             "kf_angle" => cfg.keyframe.angle = f,

@@ -171,6 +171,9 @@ pub struct MapperStats {
     pub odometry_gaps: u32,
     /// Odometry and gyro samples rejected (order, non-finite).
     pub odometry_rejected: u32,
+    /// Scans whose odometry stood still (an increment of exactly zero) while the scan matcher
+    /// saw the robot move: a stalled odometry stream, whose motion arrives later in one burst.
+    pub odometry_stalls: u32,
     /// Keyframes (frame nodes) created.
     pub keyframes: u32,
     /// Keyframes not created because a pool was full.
@@ -296,6 +299,9 @@ pub struct MapperState {
     /// Previous accepted scan: front-end pose, real-time pose, odometry pose (if any).
     pub(crate) last: Option<(Se2, Se2, Option<Se2>)>,
     pub(crate) frontend: Se2,
+    /// Motion the scan matcher measured while the odometry stood still, which the odometry
+    /// has not reported yet: taken off its next increment.
+    pub(crate) stall: Se2,
     pub(crate) path: f64,
     pub(crate) rotation: f64,
     pub(crate) keyframes: KeyframeSelector,
@@ -330,6 +336,7 @@ impl MapperState {
                 icp_degenerate: 0,
                 odometry_gaps: 0,
                 odometry_rejected: 0,
+                odometry_stalls: 0,
                 keyframes: 0,
                 keyframes_dropped: 0,
                 submaps: 0,
@@ -350,6 +357,7 @@ impl MapperState {
             last_stamp: None,
             last: None,
             frontend: Se2::IDENTITY,
+            stall: Se2::IDENTITY,
             path: 0.0,
             rotation: 0.0,
             keyframes: KeyframeSelector::new(keyframe),
@@ -629,13 +637,16 @@ impl<'r> Mapper<'r> {
             Some(l) => l,
             None => (Se2::IDENTITY, Se2::IDENTITY, odom),
         };
-        let increment = match (odom_prev, odom) {
-            (Some(a), Some(b)) => a.between(&b),
+        let (increment, odometry_still) = match (odom_prev, odom) {
+            (Some(a), Some(b)) if a == b => (Se2::IDENTITY, true),
+            // The first increment after a stall carries the motion the stall hid, part of
+            // which the scan matcher has already measured.
+            (Some(a), Some(b)) => (self.st.stall.inverse().compose(&a.between(&b)), false),
             _ => {
                 if self.st.last.is_some() {
                     self.st.stats.odometry_gaps += 1;
                 }
-                Se2::IDENTITY
+                (Se2::IDENTITY, false)
             }
         };
         let seed = pose_prev.compose(&increment);
@@ -644,12 +655,16 @@ impl<'r> Mapper<'r> {
             let tree = self.local.tree();
             let mut best = align(self.scan, &tree, &seed, &self.cfg.icp);
             let turn = libm::fabs(increment.theta);
-            if self.cfg.turn_reseed > 0.0 && turn > self.cfg.turn_reseed {
+            // A primary match whose residual is at the noise level has found its basin:
+            // the rotated seeds are for rescuing the ones that have not.
+            let settled = matches!(&best, Ok(b) if b.rms <= self.cfg.turn_reseed_rms);
+            if self.cfg.turn_reseed > 0.0 && turn > self.cfg.turn_reseed && !settled {
                 for k in [-2.0, -1.0, 1.0, 2.0] {
                     let alt = Se2::new(seed.x, seed.y, seed.theta + k * turn);
                     let Ok(r) = align(self.scan, &tree, &alt, &self.cfg.icp) else {
                         continue;
                     };
+
                     let better = match &best {
                         // Clearly better only: a wrong minimum near a good one must not
                         // win on noise.
@@ -672,6 +687,15 @@ impl<'r> Mapper<'r> {
             }
         }
         let step = pose_prev.between(&pose);
+        if let (true, Some(d)) = (odometry_still, self.cfg.stall_motion) {
+            if libm::sqrt(step.x * step.x + step.y * step.y) > d[0] || libm::fabs(step.theta) > d[1]
+            {
+                self.st.stats.odometry_stalls += 1;
+                self.st.stall = self.st.stall.compose(&step);
+            }
+        } else {
+            self.st.stall = Se2::IDENTITY;
+        }
         if self.st.last.is_some() {
             self.st.path += libm::sqrt(step.x * step.x + step.y * step.y);
             self.st.rotation += libm::fabs(step.theta);

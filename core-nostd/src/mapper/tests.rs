@@ -138,11 +138,18 @@ fn run(config: MapperConfig) -> Run {
 }
 
 fn run_probed(config: MapperConfig, probed: bool) -> Run {
+    run_with(config, probed, &|_| false)
+}
+
+/// The run, with the odometry stream frozen (the last sample repeated) at the frames where
+/// `stalled` says so.
+fn run_with(config: MapperConfig, probed: bool, stalled: &dyn Fn(usize) -> bool) -> Run {
     let truth = path();
     let mut res: Box<TestResources> = Box::default();
     let mut mapper = res.mapper(config).expect("resources fit");
     // Odometry: the true increments with a heading bias of 2 degrees per metre.
     let mut odom = Se2::IDENTITY;
+    let mut reported = Se2::IDENTITY;
     let mut outputs = Vec::new();
     let mut serial_of = Vec::new();
     let mut sections = Vec::new();
@@ -153,7 +160,12 @@ fn run_probed(config: MapperConfig, probed: bool) -> Run {
             odom = odom.compose(&Se2::new(inc.x, inc.y, inc.theta + d * 0.035));
         }
         let t = 1_000_000_000 + i as i64 * 100_000_000;
-        mapper.push_odometry(t, odom).expect("odometry in order");
+        if !stalled(i) {
+            reported = odom;
+        }
+        mapper
+            .push_odometry(t, reported)
+            .expect("odometry in order");
         let ranges = scan_at(p);
         let input = ScanInput {
             stamp: t,
@@ -243,6 +255,69 @@ fn two_laps_close_loops_and_stay_consistent() {
             let f = w[0].frontend.between(&w[1].frontend);
             assert!(libm::hypot(g.x - f.x, g.y - f.y) < 0.02);
         }
+    });
+}
+
+/// Frames of the first lap's second corner turn (turning on the spot, 0.157 rad per frame).
+fn second_turn() -> core::ops::Range<usize> {
+    let truth = path();
+    let turning: Vec<usize> = (1..truth.len())
+        .filter(|&i| {
+            let d = truth[i - 1].between(&truth[i]);
+            libm::hypot(d.x, d.y) < 1e-9 && libm::fabs(d.theta) > 0.1
+        })
+        .collect();
+    // Turns come in runs of 10 frames; the second run.
+    turning[10]..turning[10] + 10
+}
+
+#[test]
+fn a_stalled_odometry_does_not_seed_its_hidden_turn_twice() {
+    with_stack(|| {
+        let turn = second_turn();
+        // The odometry repeats its sample for 7 frames of the turn, then catches up at once.
+        let stall = turn.start + 1..turn.start + 8;
+        let burst = stall.end;
+        let cfg = MapperConfig {
+            // Without the rotated seeds, the seed alone decides which minimum ICP finds.
+            turn_reseed: 0.0,
+            ..config()
+        };
+        let heading_error = |run: &Run, i: usize| {
+            let (p, q) = (&run.outputs[i - 1].frontend, &run.outputs[i].frontend);
+            let (a, b) = (&run.truth[i - 1], &run.truth[i]);
+            libm::fabs(crate::geom::wrap_angle(
+                p.between(q).theta - a.between(b).theta,
+            ))
+        };
+        let s2 = stall.clone();
+        let fixed = run_with(cfg, false, &move |i| s2.contains(&i));
+        let s3 = stall.clone();
+        let naive = run_with(
+            MapperConfig {
+                stall_motion: None,
+                ..cfg
+            },
+            false,
+            &move |i| s3.contains(&i),
+        );
+        // While the odometry stands still the scan matcher follows the turn by itself.
+        assert_eq!(fixed.stats.odometry_stalls, 7, "{:?}", fixed.stats);
+        assert_eq!(naive.stats.odometry_stalls, 0);
+        for i in stall.clone() {
+            assert!(heading_error(&fixed, i) < 0.01, "frame {i}");
+        }
+        // The catching-up increment (8 frames of turn, 1.26 rad) seeds the naive front-end
+        // with the 7 frames it has already matched; the compensated one gets one frame.
+        let (e_fixed, e_naive) = (heading_error(&fixed, burst), heading_error(&naive, burst));
+        assert!(
+            e_fixed < 0.01,
+            "compensated burst frame off by {e_fixed} rad"
+        );
+        assert!(
+            e_naive > 0.1,
+            "the naive seed should have failed (off by {e_naive} rad); the test lost its point"
+        );
     });
 }
 

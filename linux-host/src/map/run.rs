@@ -594,6 +594,7 @@ fn stats_json(s: &MapperStats) -> serde_json::Value {
         "icp_failures": s.icp_failures,
         "icp_degenerate": s.icp_degenerate,
         "odometry_gaps": s.odometry_gaps,
+        "odometry_stalls": s.odometry_stalls,
         "odometry_rejected": s.odometry_rejected,
         "keyframes": s.keyframes,
         "keyframes_dropped": s.keyframes_dropped,
