@@ -265,6 +265,9 @@ impl Default for MapperConfig {
 }
 
 impl MapperConfig {
+    /// The [`MapperConfig::stall_motion`] thresholds of the `home` profile: 1 cm, 0.01 rad.
+    pub const STALL_MOTION: [f64; 2] = [0.01, 0.01];
+
     /// Defaults for small homes (the `home` profile): 4.1 m submaps, a 10 m LiDAR, loop
     /// searches within 1.5 m and 0.5 rad (a home is small: the drift between revisits is),
     /// windows from the motion since the last loop closure (the cheaper search, measured
@@ -280,7 +283,7 @@ impl MapperConfig {
             submap_length: 1.5,
             max_range: 10.0,
             turn_reseed_rms: 0.05,
-            stall_motion: Some([0.01, 0.01]),
+            stall_motion: Some(Self::STALL_MOTION),
             loops: LoopConfig {
                 window_max: 1.5,
                 angle_max: 0.5,

@@ -103,6 +103,11 @@ pub fn mapper_config(profile: Profile, c: &MapConfig) -> MapperConfig {
             min_points: c.icp.min_points,
             ..base.icp
         },
+        turn_reseed_rms: c.icp.turn_reseed_rms,
+        stall_motion: c
+            .icp
+            .stall_compensation
+            .then_some(MapperConfig::STALL_MOTION),
         keyframe: KeyframeConfig {
             distance: c.keyframes.distance,
             angle: c.keyframes.angle,
