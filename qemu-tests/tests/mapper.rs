@@ -33,15 +33,15 @@ const BACKEND_ITERATIONS: u32 = 5;
 /// home profile's front-end (rotated turn seeds only above 5 cm RMS, stalled odometry
 /// compensated) and floor without libm:
 /// * `push_scan` (front-end + GPE + keyframe + loop search, every accepted scan): median
-///   880,380, p99 4,452,120, max 5,311,690;
-/// * `frontend_gpe` (scans that did not become keyframes): 824,420 / 4,203,250 / 5,309,520;
-/// * `keyframe_scan` (scans that became keyframes): 1,476,720 / 5,163,050 / 5,311,690;
+///   881,670, p99 4,453,340, max 5,312,850;
+/// * `frontend_gpe` (scans that did not become keyframes): 825,580 / 4,204,430 / 5,310,810;
+/// * `keyframe_scan` (scans that became keyframes): 1,478,120 / 5,164,310 / 5,312,850;
 /// * the parts of `push_scan` (the firmware's `Probe`): `frontend` (checks, preprocessing,
-///   ICP; every scan) 826,850 / 4,224,930 / 5,304,150; `gpe` (the GPE update) 3,490 /
-///   4,390 / 4,400; `keyframe_update` (frame node, submap and local map of a keyframe)
-///   570,830 / 1,025,890 / 1,295,490; `loop_search` 2,530 / 6,230 / 6,230;
+///   ICP; every scan) 828,130 / 4,226,100 / 5,305,440; `gpe` (the GPE update) 3,500 /
+///   4,400 / 4,410; `keyframe_update` (frame node, submap and local map of a keyframe)
+///   570,830 / 1,025,890 / 1,295,490; `loop_search` 2,520 / 6,230 / 6,230;
 /// * `backend_working` (back-end steps that optimized, 5 iterations at most): 401,890 /
-///   614,270 / 614,270.
+///   614,260 / 614,260.
 ///
 /// The ceilings leave about 25 %. Issue 8's targets are far above them: front-end + GPE
 /// median <= 5 M and p99 <= 10 M instructions (a 10 Hz LiDAR under 10 % of a 1 GHz A9 on
