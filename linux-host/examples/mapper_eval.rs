@@ -43,20 +43,22 @@ fn run() -> Result<()> {
     let args: Vec<String> = std::env::args().collect();
     let path = PathBuf::from(args.get(1).context("usage: mapper_eval LOG.clf [MAX]")?);
     let max: usize = args.get(2).map_or(Ok(usize::MAX), |s| s.parse())?;
-    let mut cfg = match std::env::var("PROFILE").as_deref() {
-        Ok("home") => MapperConfig::home(),
-        _ => MapperConfig::default(),
+    let home = std::env::var("PROFILE").as_deref() == Ok("home");
+    let mut cfg = if home {
+        MapperConfig::home()
+    } else {
+        MapperConfig::default()
     };
     if let Ok(over) = std::env::var("CFG") {
         apply_overrides(&mut cfg, &over)?;
     }
-    let home_res;
-    let office_res;
-    let mapper = if std::env::var("PROFILE").as_deref() == Ok("home") {
-        home_res = Box::leak(Box::new(HomeResources::new()));
+    let mut home_res;
+    let mut office_res;
+    let mapper = if home {
+        home_res = Box::new(HomeResources::new());
         home_res.mapper(cfg)
     } else {
-        office_res = Box::leak(Box::new(OfficeResources::new()));
+        office_res = Box::new(OfficeResources::new());
         office_res.mapper(cfg)
     };
     let mut mapper = mapper.map_err(|e| anyhow::anyhow!("{e}"))?;
@@ -341,8 +343,8 @@ fn apply_overrides(cfg: &mut MapperConfig, spec: &str) -> Result<()> {
             "min_fitness" => cfg.min_fitness = f as f32,
             "turn_reseed" => cfg.turn_reseed = f,
             "turn_reseed_rms" => cfg.turn_reseed_rms = f,
-            "stall_xy" => cfg.stall_motion.get_or_insert([0.01, 0.01])[0] = f,
-            "stall_theta" => cfg.stall_motion.get_or_insert([0.01, 0.01])[1] = f,
+            "stall_xy" => cfg.stall_motion.get_or_insert(MapperConfig::STALL_MOTION)[0] = f,
+            "stall_theta" => cfg.stall_motion.get_or_insert(MapperConfig::STALL_MOTION)[1] = f,
             "stall_off" => cfg.stall_motion = None,
             "icp_iterations" => cfg.icp.max_iterations = f as u16,
             "kf_distance" => cfg.keyframe.distance = f,

@@ -441,11 +441,15 @@ mod tests {
         assert!((office.submaps.size_m() - 10.0).abs() < 1e-6);
         assert!((airport.submaps.size_m() - 10.0).abs() < 1e-6);
         assert_eq!(airport.submaps.resolution, 0.1);
-        assert_eq!(office.icp.max_iterations, home.icp.max_iterations);
-        assert_eq!(office.icp.huber, home.icp.huber);
-        assert!(home.icp.stall_compensation && !office.icp.stall_compensation);
-        assert_eq!(office.icp.turn_reseed_rms, 0.0);
-        assert_eq!(airport.icp, office.icp);
+        // The larger profiles differ from home's ICP only in the two fast-turn settings.
+        assert!(home.icp.stall_compensation && home.icp.turn_reseed_rms > 0.0);
+        let larger = IcpSection {
+            turn_reseed_rms: 0.0,
+            stall_compensation: false,
+            ..home.icp
+        };
+        assert_eq!(office.icp, larger);
+        assert_eq!(airport.icp, larger);
     }
 
     #[test]
