@@ -39,6 +39,7 @@ pub mod backend;
 pub mod error;
 pub mod frontend;
 pub mod geom;
+pub mod gpe;
 pub mod graph;
 pub mod mapper;
 pub mod profile;

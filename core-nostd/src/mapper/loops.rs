@@ -1,30 +1,31 @@
-//! Loop closure of a new keyframe against the finished submaps.
+//! Loop closure of a new keyframe against the finished submaps (the paper's loop constraints,
+//! section III-B.2, which become the max-mixture edges of eq. 12).
 //!
 //! Candidates are the finished submaps whose area contains the keyframe's estimated position,
 //! widened by the search window, and whose anchor is old enough not to be a neighbour along the
 //! odometry chain. The window is `sigmas` standard deviations of the front-end uncertainty
 //! (a Mahalanobis gate in the metric of the motion model), clamped to a range, accumulated
-//! either since the candidate submap was started (`window_from_anchor`, the office preset) or
-//! since the last loop closure (the home preset). The first is the drift between the submap
-//! and the keyframe as far as the front-end knows: a loop closure, true or false, is only
-//! judged by the back-end later, and a local one says nothing about the drift relative to an
-//! old submap, so the window must not shrink with it (on intel it did, and the first big loops
-//! fell outside 0.5 m windows while the true offsets were 1.3 to 1.6 m). With
-//! `window_lever`, the position window also holds the heading uncertainty times a lever arm
-//! proportional to the path. For each candidate, nearest first, a branch-and-bound
+//! either since the candidate submap was opened (`window_from_anchor`) or since the last loop
+//! closure. The first is the drift between the submap and the keyframe as far as the front-end
+//! knows: a loop closure, true or false, is only judged by the back-end later, and a local one
+//! says nothing about the drift relative to an old submap, so the window must not shrink with
+//! it. With `window_lever`, the position window also holds the heading uncertainty times a
+//! lever arm proportional to the path. For each candidate, nearest first, a branch-and-bound
 //! correlative search over the window finds the best pose of the scan in the submap; ICP
 //! against the submap's occupied cells refines it without the degenerate-direction fallback
 //! (a corridor match that does not fix every direction is rejected); the fitness, the RMS
-//! residual and the agreement of the two matches decide. An accepted match becomes a loop edge
-//! from the submap's anchor to the keyframe with the ICP information (floored) and a
-//! max-mixture null hypothesis.
+//! residual and the agreement of the two matches decide. A match is believed only when a
+//! second keyframe matched to the same submap agrees with it through the front-end motion
+//! between the two; both then become loop edges from the submap's anchor with the ICP
+//! information (floored) and a max-mixture null hypothesis.
 
 use nalgebra::Matrix3;
 
-use super::{LoopCandidate, Mapper};
+use super::Mapper;
 use crate::frontend::csm::{search, CsmConfig, Pyramid};
+use crate::frontend::lidar::{MotionNoise, Travel};
 use crate::frontend::{align, IcpConfig, KdTree, Submap};
-use crate::geom::{spd_inverse, Se2};
+use crate::geom::{spd_inverse, Info3, Se2};
 use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
 use crate::storage::NodeId;
 
@@ -32,6 +33,48 @@ use crate::storage::NodeId;
 const MAX_CANDIDATES: usize = 8;
 /// Occupied cells for the refinement: log-odds units at least this (probability ~0.73).
 const OCCUPIED: i8 = 10;
+/// Radius, in cells, of the normal fit of the refinement's reference points.
+const NORMAL_RADIUS: u8 = 2;
+/// Matches waiting for confirmation (one per submap, the oldest dropped when full).
+const UNCONFIRMED: usize = 4;
+/// Share of the scan (one in this many points) that must fall inside the submap at the seed.
+const MIN_INSIDE_ONE_IN: usize = 3;
+/// Correspondence distance of the refinement, metres: the correlative match is already within
+/// a few cells.
+const REFINE_CORRESPONDENCE: f32 = 0.3;
+/// The refinement may move the correlative match by at most this many grid cells.
+const MAX_REFINE_SHIFT_CELLS: f64 = 4.0;
+/// Allowed disagreement of two matches per metre between their keyframes (the front-end's
+/// drift over that distance).
+const AGREE_PER_METRE: f64 = 0.02;
+
+/// A loop-closure match waiting for a second, agreeing one.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct LoopCandidate {
+    slot: u16,
+    serial: u32,
+    z: Se2,
+    info: Info3,
+}
+
+/// The loop search's memory between keyframes.
+#[derive(Clone, Debug)]
+pub(crate) struct LoopState {
+    /// Front-end travel at the last loop closure (the search window grows with the travel
+    /// since).
+    at_loop: Travel,
+    /// Matches waiting for confirmation.
+    unconfirmed: heapless::Vec<LoopCandidate, UNCONFIRMED>,
+}
+
+impl LoopState {
+    pub(crate) const fn new() -> Self {
+        LoopState {
+            at_loop: Travel::ZERO,
+            unconfirmed: heapless::Vec::new(),
+        }
+    }
+}
 
 impl Mapper<'_> {
     /// Searches loop closures for keyframe `serial`; returns how many were added.
@@ -43,11 +86,8 @@ impl Mapper<'_> {
             return 0;
         };
         let lc = self.cfg.loops;
-        let since_loop = (
-            self.st.path - self.st.path_at_loop,
-            self.st.rotation - self.st.rotation_at_loop,
-        );
-        let (window, angle) = self.search_window(since_loop.0, since_loop.1);
+        let travel = self.st.frontend.travel();
+        let (window, angle) = self.search_window(&travel.since(&self.st.loops.at_loop));
         let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
 
         let mut candidates = heapless::Vec::<(f64, usize, u32), MAX_CANDIDATES>::new();
@@ -108,25 +148,26 @@ impl Mapper<'_> {
             };
             let confirmed = match self
                 .st
+                .loops
                 .unconfirmed
                 .iter()
                 .position(|c| c.slot == slot as u16)
             {
                 Some(i) => {
-                    let c = self.st.unconfirmed[i];
+                    let c = self.st.loops.unconfirmed[i];
                     if self.loops_agree(&c, &candidate) {
-                        let _ = self.st.unconfirmed.swap_remove(i);
+                        let _ = self.st.loops.unconfirmed.swap_remove(i);
                         Some(c)
                     } else {
-                        self.st.unconfirmed[i] = candidate;
+                        self.st.loops.unconfirmed[i] = candidate;
                         None
                     }
                 }
                 None => {
-                    if self.st.unconfirmed.is_full() {
-                        let _ = self.st.unconfirmed.remove(0);
+                    if self.st.loops.unconfirmed.is_full() {
+                        let _ = self.st.loops.unconfirmed.remove(0);
                     }
-                    let _ = self.st.unconfirmed.push(candidate);
+                    let _ = self.st.loops.unconfirmed.push(candidate);
                     None
                 }
             };
@@ -149,22 +190,20 @@ impl Mapper<'_> {
                 if self.graph.add_edge(edge).is_ok() {
                     added += 1;
                     self.st.stats.loop_closures += 1;
-                    self.st.pending_loop = true;
-                    self.st.path_at_loop = self.st.path;
-                    self.st.rotation_at_loop = self.st.rotation;
+                    self.st.backend.loop_added();
+                    self.st.loops.at_loop = travel;
                 }
             }
         }
         added
     }
 
-    /// Half-widths `(metres, radians)` of the search for a front-end motion of path length
-    /// `path` and rotation `rotation`: `sigmas` standard deviations of the motion model,
-    /// clamped.
-    fn search_window(&self, path: f64, rotation: f64) -> (f64, f64) {
+    /// Half-widths `(metres, radians)` of the search after a front-end `travel`: `sigmas`
+    /// standard deviations of the motion model, clamped.
+    fn search_window(&self, travel: &Travel) -> (f64, f64) {
         let lc = &self.cfg.loops;
-        let cov = self.cfg.noise.covariance(path, rotation);
-        let lever = lc.window_lever * libm::fabs(path);
+        let cov = self.cfg.noise.over(travel);
+        let lever = lc.window_lever * libm::fabs(travel.path);
         let var_xy = cov[(0, 0)].max(cov[(1, 1)]) + cov[(2, 2)] * lever * lever;
         (
             (lc.sigmas * libm::sqrt(var_xy)).clamp(lc.window_min, lc.window_max),
@@ -182,8 +221,7 @@ impl Mapper<'_> {
         let Some(m) = self.submaps.get(slot) else {
             return global;
         };
-        let [path, rotation] = m.anchor_motion;
-        self.search_window(self.st.path - path, self.st.rotation - rotation)
+        self.search_window(&self.st.frontend.travel().since(&m.anchor_travel))
     }
 
     /// Whether two matches against one submap agree with the front-end motion between their
@@ -199,7 +237,8 @@ impl Mapper<'_> {
         let e = odo.between(&a.z.between(&b.z));
         let d = libm::hypot(odo.x, odo.y);
         let lc = &self.cfg.loops;
-        libm::hypot(e.x, e.y) <= lc.agree_xy + 0.02 * d && libm::fabs(e.theta) <= lc.agree_theta
+        libm::hypot(e.x, e.y) <= lc.agree_xy + AGREE_PER_METRE * d
+            && libm::fabs(e.theta) <= lc.agree_theta
     }
 
     /// Matches the current scan in submap `slot` around `seed` (pose in the submap's frame);
@@ -236,7 +275,7 @@ impl Mapper<'_> {
                 let _ = self.loop_scan.push(*q);
             }
         }
-        if 3 * self.loop_scan.len() < self.scan.len()
+        if MIN_INSIDE_ONE_IN * self.loop_scan.len() < self.scan.len()
             || (self.loop_scan.len() as u32) < self.cfg.icp.min_points
         {
             self.st.stats.loops_no_match += 1;
@@ -246,12 +285,12 @@ impl Mapper<'_> {
             self.st.stats.loops_no_match += 1;
             return None;
         };
-        let n = submap.occupied_points(OCCUPIED, 2, self.reference);
+        let n = submap.occupied_points(OCCUPIED, NORMAL_RADIUS, self.reference);
         let tree = KdTree::build(self.reference.get_mut(..n)?);
         let icp = IcpConfig {
             allow_degenerate: false,
             degeneracy_ratio: lc.degeneracy_ratio,
-            max_correspondence: 0.3,
+            max_correspondence: REFINE_CORRESPONDENCE,
             ..self.cfg.icp
         };
         let refined = match align(self.loop_scan, &tree, &found.pose, &icp) {
@@ -272,7 +311,7 @@ impl Mapper<'_> {
         let res = self.cfg.grid.resolution as f64;
         if refined.fitness < lc.min_fitness
             || refined.rms > lc.max_rms
-            || libm::hypot(moved.x, moved.y) > 4.0 * res
+            || libm::hypot(moved.x, moved.y) > MAX_REFINE_SHIFT_CELLS * res
         {
             debug!(
                 "loop rejected: score {} fitness {} rms {} moved {}",

@@ -1,25 +1,27 @@
-//! The LiDAR mapper (sensor set L): the paper's pipeline assembled over fixed storage.
+//! The LiDAR mapper (sensor set L): the paper's block diagram (Fig. 2) assembled over fixed
+//! storage.
 //!
-//! Data flow per scan ([`Mapper::push_scan`]):
-//! 1. the time stamp is checked (a scan not later than the previous one is rejected and
-//!    counted), the ranges are preprocessed (invalid beams counted, points moved into the robot
-//!    frame by the scan's mounting);
-//! 2. **front-end**: the motion since the previous scan from the fused wheel odometry (and gyro)
-//!    seeds ICP against the local point map; the result is the front-end pose `p_k` in the
-//!    front-end frame, which drifts but is locally exact;
-//! 3. **GPE** ([`gpe`]): the real-time global pose from the prediction, the reference node (the
-//!    newest keyframe) and the anchor node (from the last optimization), or the worst-case
-//!    prediction when the caller's deadline has passed;
-//! 4. on a **keyframe** (moved or turned enough): a new frame node in the pose graph with an
-//!    odometry edge from the previous one, the scan inserted into the active submap and the
-//!    local point map, and every few keyframes a **loop-closure** search against the finished
-//!    submaps inside the pose uncertainty (branch-and-bound correlative search refined by ICP),
-//!    giving max-mixture loop edges.
+//! One scan ([`Mapper::push_scan`]) passes the stages in order:
+//! 1. **preprocess**: the stamp is checked (a scan not later than the previous one is rejected
+//!    and counted), invalid beams are counted and dropped, the points are moved into the robot
+//!    frame by the scan's mounting;
+//! 2. **front-end** (block a, [`LidarFrontend`]): the fused wheel odometry (and gyro) seeds
+//!    ICP against the local point map; the result is the front-end pose, which drifts but is
+//!    locally exact;
+//! 3. **GPE** (block b, [`crate::gpe`]): the real-time global pose from the prediction, the
+//!    reference node (the newest frame node) and the anchor node (from the last
+//!    optimization), or the worst-case prediction when the caller's deadline has passed;
+//! 4. **frame node** (module `frames`): a keyframe (moved or turned enough) becomes a node of
+//!    the pose graph with an odometry edge from the previous one, and its scan enters the
+//!    active submap and the local point map (module `submaps`);
+//! 5. **loop search** (module `loops`), every few keyframes: against the finished submaps
+//!    inside the pose uncertainty, giving max-mixture loop edges.
 //!
-//! The **back-end** ([`Mapper::step_backend`]) optimizes the graph in steps of a few
-//! Gauss-Newton iterations; a finished optimization makes its newest node the GPE's anchor.
-//! The caller decides when to step it (every scan, in a background thread under a lock, or
-//! late on purpose to test the GPE).
+//! The **back-end** (block c, [`Mapper::step_backend`] over
+//! [`BackendSchedule`](crate::backend::schedule::BackendSchedule)) optimizes the graph in steps
+//! of a few Gauss-Newton iterations; a finished optimization chooses the GPE's anchor. The
+//! caller decides when to step it (every scan, in a background thread, or late on purpose to
+//! test the GPE).
 //!
 //! # Frames and nodes
 //! A frame node is created per keyframe; the LiDAR keyframe hangs off it with the identity
@@ -29,29 +31,41 @@
 //! keyframe that opened it), so its world pose is the anchor's estimate.
 //!
 //! Memory: everything lives in [`MapperResources`](crate::profile::MapperResources); the
-//! mapper only borrows it. A full node or edge pool is pruned (module `pool`); if that frees nothing
-//! new keyframes are dropped (counted in
-//! [`MapperStats::keyframes_dropped`]) instead of failing; a full submap pool recycles the
-//! submap that newer ones cover best.
+//! mapper only borrows it. A full node or edge pool is pruned; if that frees nothing new
+//! keyframes are dropped (counted in [`MapperStats::keyframes_dropped`]) instead of failing; a
+//! full submap pool recycles the submap that newer ones cover best.
 
 pub mod config;
 pub mod feed;
-pub mod gpe;
+mod frames;
 mod loops;
 mod pool;
+mod submaps;
+mod types;
 
 use crate::backend::prune::PruneScratch;
-use crate::frontend::odometry::{OdomError, OdometryFusion};
+use crate::backend::schedule::{BackendSchedule, ScheduleParams};
+use crate::frontend::lidar::{FrontendStep, LidarFrontend, LidarParams, MotionNoise};
+use crate::frontend::odometry::OdometryFusion;
 use crate::frontend::scan::{BeamGeometry, ScanPoint, ScanPoints};
-use crate::frontend::{align, preprocess, KeyframeSelector, PointMap, Submap};
-use crate::geom::{spd_inverse, Cov3, Info3, Se2};
-use crate::graph::{EdgeKind, PoseEdge, PoseGraph};
-use crate::solver::{self, Method, SolveError, SolverBuffers, SolverOptions};
-use crate::storage::NodeId;
+use crate::frontend::{preprocess, PointMap, PreprocessConfig};
+use crate::geom::{Cov3, Se2};
+use crate::gpe::{choose_anchor, AnchorCandidate, GpeFrame, GpeTracker, NodeTie};
+use crate::graph::PoseGraph;
+use crate::solver::SolverBuffers;
 
+pub use crate::backend::schedule::BackendStep;
+pub use crate::gpe;
 pub use config::{BackendConfig, FrontendNoise, LoopConfig, MapperConfig};
 pub use feed::Feeder;
+pub use frames::NodeMeta;
 pub use gpe::GpeConfig;
+pub use submaps::SubmapMeta;
+pub use types::{FrameOutput, MapperError, MapperStats, ScanInput};
+
+use frames::FrameState;
+use loops::LoopState;
+use submaps::SubmapState;
 
 /// The parts of [`Mapper::push_scan`], in the order they run, for a caller that measures them
 /// (the firmware counts the instructions of each under QEMU).
@@ -92,287 +106,61 @@ pub const ODOMETRY_HISTORY: usize = 256;
 /// `NodeMeta::submap` value of "no submap".
 pub const NO_SUBMAP: u16 = u16::MAX;
 
-/// What the mapper remembers about a frame node besides its pose-graph estimate.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct NodeMeta {
-    /// Keyframe number, counting from 0 (stable while the graph's indices are not).
-    pub serial: u32,
-    /// Time stamp, ns.
-    pub stamp: i64,
-    /// Front-end pose when the keyframe was taken.
-    pub frontend: Se2,
-    /// Front-end path length at the keyframe, metres.
-    pub path: f64,
-    /// Front-end absolute rotation at the keyframe, radians.
-    pub rotation: f64,
-    /// Submap slot its scan went into.
-    pub submap: u16,
+impl MotionNoise for FrontendNoise {
+    fn covariance(&self, distance: f64, rotation: f64) -> Cov3 {
+        FrontendNoise::covariance(self, distance, rotation)
+    }
 }
 
-impl NodeMeta {
-    /// Placeholder for storage initialisers.
-    pub const EMPTY: NodeMeta = NodeMeta {
-        serial: 0,
-        stamp: 0,
-        frontend: Se2::IDENTITY,
-        path: 0.0,
-        rotation: 0.0,
-        submap: NO_SUBMAP,
-    };
-}
+impl MapperConfig {
+    /// The front-end's part of the configuration.
+    fn lidar(&self) -> LidarParams<'_> {
+        LidarParams {
+            icp: &self.icp,
+            min_fitness: self.min_fitness,
+            turn_reseed: self.turn_reseed,
+            turn_reseed_rms: self.turn_reseed_rms,
+            stall_motion: self.stall_motion,
+        }
+    }
 
-/// A submap slot.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct SubmapMeta {
-    /// The slot holds a submap.
-    pub in_use: bool,
-    /// Still receiving scans.
-    pub active: bool,
-    /// Serial of the anchor keyframe (the grid is in its frame).
-    pub anchor_serial: u32,
-    /// Front-end pose of the anchor.
-    pub anchor_frontend: Se2,
-    /// Keyframes inserted.
-    pub keyframes: u32,
-    /// Path length and absolute rotation of the robot (front-end) when the submap was started:
-    /// the drift relative to the submap grows from there.
-    pub anchor_motion: [f64; 2],
-}
-
-impl SubmapMeta {
-    /// An empty slot.
-    pub const EMPTY: SubmapMeta = SubmapMeta {
-        in_use: false,
-        active: false,
-        anchor_serial: 0,
-        anchor_frontend: Se2::IDENTITY,
-        keyframes: 0,
-        anchor_motion: [0.0; 2],
-    };
-}
-
-/// Counters of a run.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub struct MapperStats {
-    /// Scans accepted.
-    pub scans: u32,
-    /// Scans rejected because their stamp was not after the previous scan's.
-    pub scans_out_of_order: u32,
-    /// Scans rejected with no usable point (empty, all invalid) or a bad geometry.
-    pub scans_empty: u32,
-    /// Beams dropped as NaN or infinite.
-    pub beams_invalid: u32,
-    /// Scans whose ICP failed or was too weak (the odometry seed was used).
-    pub icp_failures: u32,
-    /// Scans matched with a degenerate direction left at the seed.
-    pub icp_degenerate: u32,
-    /// Scans without an odometry increment (no wheel data around their time).
-    pub odometry_gaps: u32,
-    /// Odometry and gyro samples rejected (order, non-finite).
-    pub odometry_rejected: u32,
-    /// Scans whose odometry stood still (an increment of exactly zero) while the scan matcher
-    /// saw the robot move: a stalled odometry stream, whose motion arrives later in one burst.
-    pub odometry_stalls: u32,
-    /// Keyframes (frame nodes) created.
-    pub keyframes: u32,
-    /// Keyframes not created because a pool was full.
-    pub keyframes_dropped: u32,
-    /// Submaps opened.
-    pub submaps: u32,
-    /// Submaps recycled because the pool was full.
-    pub submaps_recycled: u32,
-    /// Loop-closure searches (one per candidate submap).
-    pub loop_searches: u32,
-    /// Loop closures added.
-    pub loop_closures: u32,
-    /// Searches where the correlative search found nothing above the score threshold.
-    pub loops_no_match: u32,
-    /// Correlative matches rejected by the refinement (ICP failure, fitness, RMS, degeneracy).
-    pub loops_rejected: u32,
-    /// Matches not (yet) confirmed by a second agreeing one.
-    pub loops_unconfirmed: u32,
-    /// GPE updates solved.
-    pub gpe_solved: u32,
-    /// Frames that used the worst-case prediction.
-    pub gpe_predicted: u32,
-    /// Back-end optimizations finished.
-    pub optimizations: u32,
-    /// Back-end steps run.
-    pub backend_steps: u32,
-    /// Back-end optimizations that failed (the estimate was kept).
-    pub optimization_failures: u32,
-    /// Times a full node or edge pool was pruned.
-    pub prunes: u32,
-    /// Nodes eliminated by pruning.
-    pub nodes_pruned: u32,
-}
-
-/// Errors of the mapper.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[cfg_attr(feature = "defmt", derive(defmt::Format))]
-pub enum MapperError {
-    /// The resources do not match the configuration (grid size, pyramid levels).
-    Storage(&'static str),
-    /// The configuration is not usable.
-    Config(&'static str),
-    /// The scan's stamp is not after the previous scan's (rejected, counted).
-    OutOfOrder,
-    /// The scan has no usable point or an invalid geometry (rejected, counted).
-    EmptyScan,
-    /// A sample with a bad order or value (rejected, counted).
-    BadSample,
-}
-
-impl core::fmt::Display for MapperError {
-    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        match self {
-            MapperError::Storage(what) => write!(f, "mapper storage does not fit: {what}"),
-            MapperError::Config(what) => write!(f, "invalid mapper configuration: {what}"),
-            MapperError::OutOfOrder => f.write_str("scan time stamp not after the previous one"),
-            MapperError::EmptyScan => f.write_str("scan without usable points"),
-            MapperError::BadSample => f.write_str("odometry or gyro sample rejected"),
+    /// The back-end schedule's part of the configuration.
+    fn schedule(&self) -> ScheduleParams {
+        ScheduleParams {
+            every_keyframes: self.backend.every_keyframes,
+            max_iterations: self.backend.max_iterations,
+            gate_chi2: self.backend.gate_chi2,
         }
     }
 }
 
-impl core::error::Error for MapperError {}
-
-/// One laser scan lent to the mapper.
-#[derive(Clone, Copy, Debug)]
-pub struct ScanInput<'a> {
-    /// Time stamp, ns.
-    pub stamp: i64,
-    /// Ranges, metres (NaN / infinite beams are dropped and counted).
-    pub ranges: &'a [f32],
-    /// Beam geometry.
-    pub geometry: BeamGeometry,
-    /// Pose of the scanner on the robot.
-    pub mounting: Se2,
-}
-
-/// The result of one accepted scan.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct FrameOutput {
-    /// Time stamp, ns.
-    pub stamp: i64,
-    /// Real-time global pose of the robot (GPE or worst-case prediction).
-    pub pose: Se2,
-    /// Front-end pose (LiDAR odometry, drifting frame).
-    pub frontend: Se2,
-    /// Serial of the reference keyframe the pose hangs off (the newest at this scan).
-    pub reference_serial: u32,
-    /// This scan became a keyframe.
-    pub keyframe: bool,
-    /// The pose is the worst-case prediction (deadline passed or GPE not converged).
-    pub predicted: bool,
-    /// Loop closures added for this scan.
-    pub loops: u8,
-}
-
-/// What one back-end step did.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum BackendStep {
-    /// Nothing to optimize.
-    Idle,
-    /// Iterations ran; the optimization continues on the next step.
-    Working,
-    /// An optimization finished; its result is the GPE's new anchor.
-    Finished,
-}
-
-/// A loop-closure match waiting for a second, agreeing one.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub(crate) struct LoopCandidate {
-    pub(crate) slot: u16,
-    pub(crate) serial: u32,
-    pub(crate) z: Se2,
-    pub(crate) info: Info3,
-}
-
-/// Small mutable state of the mapper (kept in the resources so the mapper itself is a set of
-/// borrows).
+/// Small mutable state of the mapper, one part per stage (kept in the resources so the mapper
+/// itself is a set of borrows).
 #[derive(Clone, Debug)]
 pub struct MapperState {
+    /// The mapper's own counters (the stages keep theirs).
     pub(crate) stats: MapperStats,
     pub(crate) last_stamp: Option<i64>,
-    /// Previous accepted scan: front-end pose, real-time pose, odometry pose (if any).
-    pub(crate) last: Option<(Se2, Se2, Option<Se2>)>,
-    pub(crate) frontend: Se2,
-    /// Motion the scan matcher measured while the odometry stood still, which the odometry
-    /// has not reported yet: taken off its next increment.
-    pub(crate) stall: Se2,
-    pub(crate) path: f64,
-    pub(crate) rotation: f64,
-    pub(crate) keyframes: KeyframeSelector,
-    pub(crate) local_origin: Option<Se2>,
-    pub(crate) serial: u32,
-    pub(crate) active_submap: Option<u16>,
-    pub(crate) pyramid_of: Option<u16>,
-    /// Path length at the last loop closure (the search window grows with the path since).
-    pub(crate) path_at_loop: f64,
-    pub(crate) rotation_at_loop: f64,
-    /// Keyframes added since the last finished optimization, and whether a loop was added.
-    pub(crate) pending_keyframes: u32,
-    pub(crate) pending_loop: bool,
-    pub(crate) optimizing: bool,
-    pub(crate) iterations_done: u32,
-    /// Serial of the anchor node (from the last finished optimization).
-    pub(crate) anchor: Option<u32>,
-    /// Loop matches waiting for confirmation.
-    pub(crate) unconfirmed: heapless::Vec<LoopCandidate, 4>,
+    pub(crate) frontend: LidarFrontend,
+    pub(crate) gpe: GpeTracker,
+    pub(crate) frames: FrameState,
+    pub(crate) submaps: SubmapState,
+    pub(crate) loops: LoopState,
+    pub(crate) backend: BackendSchedule,
 }
 
 impl MapperState {
     /// The state before the first scan.
     pub const fn new(keyframe: crate::frontend::KeyframeConfig) -> Self {
         MapperState {
-            stats: MapperStats {
-                scans: 0,
-                scans_out_of_order: 0,
-                scans_empty: 0,
-                beams_invalid: 0,
-                icp_failures: 0,
-                icp_degenerate: 0,
-                odometry_gaps: 0,
-                odometry_rejected: 0,
-                odometry_stalls: 0,
-                keyframes: 0,
-                keyframes_dropped: 0,
-                submaps: 0,
-                submaps_recycled: 0,
-                loop_searches: 0,
-                loop_closures: 0,
-                loops_no_match: 0,
-                loops_rejected: 0,
-                loops_unconfirmed: 0,
-                gpe_solved: 0,
-                gpe_predicted: 0,
-                optimizations: 0,
-                backend_steps: 0,
-                optimization_failures: 0,
-                prunes: 0,
-                nodes_pruned: 0,
-            },
+            stats: MapperStats::ZERO,
             last_stamp: None,
-            last: None,
-            frontend: Se2::IDENTITY,
-            stall: Se2::IDENTITY,
-            path: 0.0,
-            rotation: 0.0,
-            keyframes: KeyframeSelector::new(keyframe),
-            local_origin: None,
-            serial: 0,
-            active_submap: None,
-            pyramid_of: None,
-            path_at_loop: 0.0,
-            rotation_at_loop: 0.0,
-            pending_keyframes: 0,
-            pending_loop: false,
-            optimizing: false,
-            iterations_done: 0,
-            anchor: None,
-            unconfirmed: heapless::Vec::new(),
+            frontend: LidarFrontend::new(),
+            gpe: GpeTracker::new(),
+            frames: FrameState::new(keyframe),
+            submaps: SubmapState::NONE,
+            loops: LoopState::new(),
+            backend: BackendSchedule::new(),
         }
     }
 }
@@ -435,13 +223,9 @@ impl core::fmt::Debug for Mapper<'_> {
         f.debug_struct("Mapper")
             .field("nodes", &self.graph.node_count())
             .field("edges", &self.graph.edge_count())
-            .field("stats", &self.st.stats)
+            .field("stats", &self.stats())
             .finish()
     }
-}
-
-fn fixed_info(cov: &Cov3) -> Info3 {
-    spd_inverse(cov).unwrap_or_else(Info3::identity)
 }
 
 impl<'r> Mapper<'r> {
@@ -463,8 +247,8 @@ impl<'r> Mapper<'r> {
         if parts.meta.len() < parts.graph.node_capacity() {
             return Err(MapperError::Storage("node metadata"));
         }
-        let submap_slots = parts.cells.len() / cells_per_submap;
-        if parts.submaps.len() < submap_slots || submap_slots < 2 {
+        let n_submaps = parts.cells.len() / cells_per_submap;
+        if parts.submaps.len() < n_submaps || n_submaps < 2 {
             return Err(MapperError::Storage("submap slots"));
         }
         if !(cfg.submap_length > 0.0 && cfg.local_reset > 0.0 && cfg.loops.every > 0) {
@@ -472,7 +256,6 @@ impl<'r> Mapper<'r> {
                 "lengths and loop interval must be positive",
             ));
         }
-        let n_submaps = submap_slots;
         Ok(Mapper {
             cfg,
             graph: parts.graph,
@@ -497,11 +280,23 @@ impl<'r> Mapper<'r> {
         &self.cfg
     }
 
-    /// Counters so far.
+    /// Counters so far, the stages' included.
     pub fn stats(&self) -> MapperStats {
         let mut s = self.st.stats;
         let o = self.odometry.stats();
         s.odometry_rejected = o.out_of_order + o.non_finite;
+        let f = self.st.frontend.counters();
+        s.icp_failures = f.icp_failures;
+        s.icp_degenerate = f.icp_degenerate;
+        s.odometry_gaps = f.odometry_gaps;
+        s.odometry_stalls = f.odometry_stalls;
+        let g = self.st.gpe.counters();
+        s.gpe_solved = g.solved;
+        s.gpe_predicted = g.predicted;
+        let b = self.st.backend.counters();
+        s.backend_steps = b.steps;
+        s.optimizations = b.optimizations;
+        s.optimization_failures = b.failures;
         s
     }
 
@@ -517,9 +312,7 @@ impl<'r> Mapper<'r> {
 
     /// Graph index of the keyframe `serial`, if it is in the graph.
     pub fn node_of(&self, serial: u32) -> Option<usize> {
-        self.nodes()
-            .binary_search_by_key(&serial, |m| m.serial)
-            .ok()
+        frames::node_index(self.nodes(), serial)
     }
 
     /// Current global estimate of keyframe `serial`.
@@ -588,17 +381,60 @@ impl<'r> Mapper<'r> {
         probe: &mut impl Probe,
     ) -> Result<FrameOutput, MapperError> {
         probe.enter(Section::Frontend);
-        let out = self.scan_sections(scan, deadline_passed, probe);
+        let out = self.frame(scan, deadline_passed, probe);
         probe.enter(Section::Done);
         out
     }
 
-    fn scan_sections(
+    /// The per-frame step: the stages of the block diagram in order.
+    fn frame(
         &mut self,
         scan: &ScanInput<'_>,
         deadline_passed: bool,
         probe: &mut impl Probe,
     ) -> Result<FrameOutput, MapperError> {
+        // Preprocess: stamp order, range limits and mounting; the points land in `self.scan`.
+        self.preprocess(scan)?;
+
+        // Front-end (III-B.2): LiDAR odometry, seeded by the fused wheel odometry.
+        let odometry = self.odometry.pose_at(scan.stamp).ok();
+        let lidar = self.cfg.lidar();
+        let front = self
+            .st
+            .frontend
+            .track(self.scan, self.local, odometry, &lidar);
+
+        // GPE (III-C): the real-time global pose, or the worst-case prediction.
+        probe.enter(Section::Gpe);
+        let frame = self.gpe_frame(&front, deadline_passed);
+        let global = self.st.gpe.update(&frame, &self.cfg.gpe, &self.cfg.noise);
+
+        // Frame node (III-B.3): a keyframe joins the pose graph, its submap and the local map.
+        probe.enter(Section::Keyframe);
+        let mut out = FrameOutput {
+            stamp: scan.stamp,
+            pose: global.pose,
+            frontend: front.pose,
+            reference_serial: self.st.frames.newest_serial(),
+            keyframe: false,
+            predicted: global.predicted,
+            loops: 0,
+        };
+        if let Some(serial) = self.keyframe(scan.stamp, &front.pose, &global.pose) {
+            out.keyframe = true;
+            out.reference_serial = serial;
+
+            // Loop search (III-B.2, loop constraints): every `loops.every` keyframes.
+            if serial % self.cfg.loops.every == 0 {
+                probe.enter(Section::LoopSearch);
+                out.loops = self.close_loops(serial);
+            }
+        }
+        Ok(out)
+    }
+
+    /// Checks the stamp and preprocesses `scan` into `self.scan`.
+    fn preprocess(&mut self, scan: &ScanInput<'_>) -> Result<(), MapperError> {
         if self.st.last_stamp.is_some_and(|t| scan.stamp <= t) {
             self.st.stats.scans_out_of_order += 1;
             return Err(MapperError::OutOfOrder);
@@ -607,474 +443,78 @@ impl<'r> Mapper<'r> {
             range_max: scan.geometry.range_max.min(self.cfg.max_range),
             ..scan.geometry
         };
-        let pre = crate::frontend::PreprocessConfig {
+        let pre = PreprocessConfig {
             mounting: scan.mounting,
             ..self.cfg.preprocess
         };
-        let stats = match preprocess(scan.ranges, &geometry, &pre, self.scan) {
-            Ok(s) => s,
-            Err(_) => {
-                self.st.stats.scans_empty += 1;
-                return Err(MapperError::EmptyScan);
-            }
+        let Ok(stats) = preprocess(scan.ranges, &geometry, &pre, self.scan) else {
+            self.st.stats.scans_empty += 1;
+            return Err(MapperError::EmptyScan);
         };
+        self.st.stats.beams_invalid += stats.nan + stats.infinite;
         if (stats.points as usize) < self.cfg.icp.min_points as usize {
             self.st.stats.scans_empty += 1;
-            self.st.stats.beams_invalid += stats.nan + stats.infinite;
             return Err(MapperError::EmptyScan);
         }
-        self.st.stats.beams_invalid += stats.nan + stats.infinite;
         self.st.last_stamp = Some(scan.stamp);
         self.st.stats.scans += 1;
-
-        // Front-end: odometry seed, ICP against the local map.
-        let odom = match self.odometry.pose_at(scan.stamp) {
-            Ok(p) => Some(p),
-            Err(OdomError::NoData | OdomError::TooOld | OdomError::TooNew) => None,
-            Err(_) => None,
-        };
-        let (pose_prev, gpe_prev, odom_prev) = match self.st.last {
-            Some(l) => l,
-            None => (Se2::IDENTITY, Se2::IDENTITY, odom),
-        };
-        let (increment, odometry_still) = match (odom_prev, odom) {
-            (Some(a), Some(b)) if a == b => (Se2::IDENTITY, true),
-            // The first increment after a stall carries the motion the stall hid, part of
-            // which the scan matcher has already measured.
-            (Some(a), Some(b)) => (self.st.stall.inverse().compose(&a.between(&b)), false),
-            _ => {
-                if self.st.last.is_some() {
-                    self.st.stats.odometry_gaps += 1;
-                }
-                (Se2::IDENTITY, false)
-            }
-        };
-        let seed = pose_prev.compose(&increment);
-        let mut pose = seed;
-        if !self.local.points().is_empty() {
-            let tree = self.local.tree();
-            let mut best = align(self.scan, &tree, &seed, &self.cfg.icp);
-            let turn = libm::fabs(increment.theta);
-            // A primary match whose residual is at the noise level has found its basin:
-            // the rotated seeds are for rescuing the ones that have not.
-            let settled = matches!(&best, Ok(b) if b.rms <= self.cfg.turn_reseed_rms);
-            if self.cfg.turn_reseed > 0.0 && turn > self.cfg.turn_reseed && !settled {
-                for k in [-2.0, -1.0, 1.0, 2.0] {
-                    let alt = Se2::new(seed.x, seed.y, seed.theta + k * turn);
-                    let Ok(r) = align(self.scan, &tree, &alt, &self.cfg.icp) else {
-                        continue;
-                    };
-
-                    let better = match &best {
-                        // Clearly better only: a wrong minimum near a good one must not
-                        // win on noise.
-                        Ok(b) => r.fitness >= b.fitness - 0.05 && r.rms < 0.7 * b.rms,
-                        Err(_) => true,
-                    };
-                    if better {
-                        best = Ok(r);
-                    }
-                }
-            }
-            match best {
-                Ok(r) if r.fitness >= self.cfg.min_fitness => {
-                    pose = r.pose;
-                    if r.degenerate.is_some() {
-                        self.st.stats.icp_degenerate += 1;
-                    }
-                }
-                _ => self.st.stats.icp_failures += 1,
-            }
-        }
-        let step = pose_prev.between(&pose);
-        if let (true, Some(d)) = (odometry_still, self.cfg.stall_motion) {
-            if libm::sqrt(step.x * step.x + step.y * step.y) > d[0] || libm::fabs(step.theta) > d[1]
-            {
-                self.st.stats.odometry_stalls += 1;
-                self.st.stall = self.st.stall.compose(&step);
-            }
-        } else {
-            self.st.stall = Se2::IDENTITY;
-        }
-        if self.st.last.is_some() {
-            self.st.path += libm::sqrt(step.x * step.x + step.y * step.y);
-            self.st.rotation += libm::fabs(step.theta);
-        }
-        self.st.frontend = pose;
-
-        // Real-time pose.
-        probe.enter(Section::Gpe);
-        let (gpe_pose, predicted) = self.estimate(&gpe_prev, &step, deadline_passed);
-        self.st.last = Some((pose, gpe_pose, odom));
-
-        // Keyframe.
-        probe.enter(Section::Keyframe);
-        let mut out = FrameOutput {
-            stamp: scan.stamp,
-            pose: gpe_pose,
-            frontend: pose,
-            reference_serial: self.st.serial.saturating_sub(1),
-            keyframe: false,
-            predicted,
-            loops: 0,
-        };
-        if self.st.keyframes.is_keyframe(&pose) {
-            if let Some(serial) = self.add_keyframe(scan.stamp, &pose, &gpe_pose) {
-                self.st.keyframes.accept(pose);
-                out.keyframe = true;
-                out.reference_serial = serial;
-                if serial % self.cfg.loops.every == 0 {
-                    probe.enter(Section::LoopSearch);
-                    out.loops = self.close_loops(serial);
-                }
-            }
-        }
-        Ok(out)
+        Ok(())
     }
 
-    /// The GPE update, or the worst-case prediction.
-    fn estimate(&mut self, previous: &Se2, step: &Se2, deadline_passed: bool) -> (Se2, bool) {
-        let prediction = gpe::worst_case(previous, step);
-        let n = self.graph.node_count();
-        if n == 0 || self.st.last.is_none() {
-            return (prediction, false);
-        }
-        if deadline_passed {
-            self.st.stats.gpe_predicted += 1;
-            return (prediction, true);
-        }
-        let cfg = self.cfg;
-        let dist = libm::sqrt(step.x * step.x + step.y * step.y);
-        let mut cov = cfg.noise.covariance(dist, step.theta);
-        let [ps_xy, ps_th] = cfg.gpe.process_sigma;
-        cov[(0, 0)] += ps_xy * ps_xy;
-        cov[(1, 1)] += ps_xy * ps_xy;
-        cov[(2, 2)] += ps_th * ps_th;
-        let mut terms = heapless::Vec::<gpe::PoseTerm, { gpe::MAX_TERMS }>::new();
-        let _ = terms.push(gpe::PoseTerm::from_local(prediction, &cov, f64::INFINITY));
-        let [ns_xy, ns_th] = cfg.gpe.node_sigma;
-        // The reference node (newest keyframe) and the anchor (last optimized).
-        let reference = n - 1;
-        let anchor = self.st.anchor.and_then(|s| self.node_of(s));
-        for i in [Some(reference), anchor.filter(|&a| a != reference)]
-            .into_iter()
-            .flatten()
-        {
-            let (Some(node), Some(m)) = (self.graph.nodes().get(i), self.meta.get(i)) else {
-                continue;
-            };
-            let rel = m.frontend.between(&self.st.frontend);
-            let mut c = cfg
-                .noise
-                .covariance(self.st.path - m.path, self.st.rotation - m.rotation);
-            c[(0, 0)] += ns_xy * ns_xy;
-            c[(1, 1)] += ns_xy * ns_xy;
-            c[(2, 2)] += ns_th * ns_th;
-            let _ = terms.push(gpe::PoseTerm::from_local(
-                node.pose.compose(&rel),
-                &c,
-                cfg.gpe.huber,
-            ));
-        }
-        match gpe::solve(&terms, &cfg.gpe) {
-            Some(s) if s.converged => {
-                self.st.stats.gpe_solved += 1;
-                (s.pose, false)
-            }
-            _ => {
-                self.st.stats.gpe_predicted += 1;
-                (prediction, true)
-            }
+    /// What the GPE needs of this frame: the front-end's result and the reference and anchor
+    /// nodes.
+    fn gpe_frame(&self, front: &FrontendStep, deadline_passed: bool) -> GpeFrame {
+        let reference = self.graph.node_count().checked_sub(1);
+        let anchor = self.st.gpe.anchor().and_then(|s| self.node_of(s));
+        GpeFrame {
+            step: front.step,
+            frontend: front.pose,
+            travel: self.st.frontend.travel(),
+            reference: reference.and_then(|i| self.tie(i)),
+            anchor: anchor
+                .filter(|&a| Some(a) != reference)
+                .and_then(|i| self.tie(i)),
+            deadline_passed,
         }
     }
 
-    /// Adds a frame node for the keyframe at front-end pose `pose`; `None` when a pool is full.
-    fn add_keyframe(&mut self, stamp: i64, pose: &Se2, global: &Se2) -> Option<u32> {
-        let n = self.graph.node_count();
-        let odometry_edge = if n > 0 {
-            let prev = self.meta.get(n - 1).copied()?;
-            let rel = prev.frontend.between(pose);
-            let cov = self
-                .cfg
-                .noise
-                .covariance(self.st.path - prev.path, self.st.rotation - prev.rotation);
-            Some(PoseEdge::new(
-                NodeId((n - 1) as u32),
-                NodeId(n as u32),
-                rel,
-                fixed_info(&cov),
-                EdgeKind::Odometry,
-            ))
-        } else {
-            None
-        };
-        if self.pool_nearly_full() {
-            self.prune_pool();
-        }
-        let n = self.graph.node_count();
-        let odometry_edge = odometry_edge.map(|e| PoseEdge {
-            from: NodeId((n - 1) as u32),
-            to: NodeId(n as u32),
-            ..e
-        });
-        if n >= self.graph.node_capacity()
-            || (odometry_edge.is_some() && self.graph.edge_count() >= self.graph.edge_capacity())
-        {
-            self.st.stats.keyframes_dropped += 1;
-            return None;
-        }
-        let id = self.graph.add_node(*global).ok()?;
-        if let Some(e) = odometry_edge {
-            if self.graph.add_edge(e).is_err() {
-                // Cannot happen after the capacity check; undo the node to stay consistent.
-                self.graph.truncate_nodes(n);
-                self.st.stats.keyframes_dropped += 1;
-                return None;
-            }
-        }
-        let serial = self.st.serial;
-        self.st.serial += 1;
-        self.st.stats.keyframes += 1;
-        self.st.pending_keyframes += 1;
-        let submap = self.submap_for(serial, pose);
-        if let Some(m) = self.meta.get_mut(id.0 as usize) {
-            *m = NodeMeta {
-                serial,
-                stamp,
-                frontend: *pose,
-                path: self.st.path,
-                rotation: self.st.rotation,
-                submap: submap.unwrap_or(NO_SUBMAP),
-            };
-        }
-        if let Some(slot) = submap {
-            self.insert_into_submap(slot, pose);
-        }
-        // Local point map of the front-end.
-        let restart = match self.st.local_origin {
-            Some(o) => libm::hypot(pose.x - o.x, pose.y - o.y) > self.cfg.local_reset,
-            None => true,
-        };
-        if restart {
-            self.local.clear();
-            self.st.local_origin = Some(*pose);
-            if self.cfg.local_from_submaps {
-                self.reseed_local(pose);
-            }
-        }
-        self.local.insert(pose, self.scan, self.cfg.local_radius);
-        Some(serial)
-    }
-
-    /// Refills the cleared local point map with the occupied cells of the newest submaps
-    /// (the active one and the one before) near `pose`, so the front-end keeps matching
-    /// against the recent past instead of a single scan after a restart.
-    fn reseed_local(&mut self, pose: &Se2) {
-        let per = self.cells_per_submap;
-        let inv = pose.inverse();
-        // The two submaps with the newest anchors.
-        let mut newest: [Option<(u32, usize)>; 2] = [None, None];
-        for (i, m) in self.submaps.iter().enumerate() {
-            if !m.in_use {
-                continue;
-            }
-            let e = Some((m.anchor_serial, i));
-            if newest[0].is_none_or(|(s, _)| m.anchor_serial > s) {
-                newest[1] = newest[0];
-                newest[0] = e;
-            } else if newest[1].is_none_or(|(s, _)| m.anchor_serial > s) {
-                newest[1] = e;
-            }
-        }
-        for (_, slot) in newest.into_iter().flatten().rev() {
-            let Some(meta) = self.submaps.get(slot) else {
-                continue;
-            };
-            let origin = inv.compose(&meta.anchor_frontend);
-            let Some(cells) = self.cells.get(slot * per..(slot + 1) * per) else {
-                continue;
-            };
-            let Ok(grid) = Submap::from_cells(origin, self.cfg.grid, cells) else {
-                continue;
-            };
-            let n = grid.occupied_points(self.cfg.local_min_log_odds, 2, self.reference);
-            if let Some(points) = self.reference.get(..n) {
-                self.local.insert(pose, points, self.cfg.local_radius);
-            }
-        }
-    }
-
-    /// The submap slot the keyframe goes into, opening a new one when the robot left the
-    /// active one.
-    fn submap_for(&mut self, serial: u32, pose: &Se2) -> Option<u16> {
-        if let Some(a) = self.st.active_submap {
-            if let Some(m) = self.submaps.get(a as usize) {
-                let o = m.anchor_frontend;
-                if libm::hypot(pose.x - o.x, pose.y - o.y) <= self.cfg.submap_length {
-                    return Some(a);
-                }
-            }
-            if let Some(m) = self.submaps.get_mut(a as usize) {
-                m.active = false;
-            }
-        }
-        let slot = match self.submaps.iter().position(|m| !m.in_use) {
-            Some(s) => s,
-            None => {
-                let s = self.recycle_submap()?;
-                self.st.stats.submaps_recycled += 1;
-                s
-            }
-        };
-        let per = self.cells_per_submap;
-        let cells = self.cells.get_mut(slot * per..(slot + 1) * per)?;
-        cells.fill(0);
-        *self.submaps.get_mut(slot)? = SubmapMeta {
-            in_use: true,
-            active: true,
-            anchor_serial: serial,
-            anchor_frontend: *pose,
-            keyframes: 0,
-            anchor_motion: [self.st.path, self.st.rotation],
-        };
-        if self.st.pyramid_of == Some(slot as u16) {
-            self.st.pyramid_of = None;
-        }
-        self.st.active_submap = Some(slot as u16);
-        self.st.stats.submaps += 1;
-        Some(slot as u16)
-    }
-
-    /// The finished submap whose anchor is nearest to a newer submap's anchor: the one the
-    /// map loses least by.
-    fn recycle_submap(&mut self) -> Option<usize> {
-        let mut best: Option<(usize, f64)> = None;
-        for (i, a) in self.submaps.iter().enumerate() {
-            if !a.in_use || a.active {
-                continue;
-            }
-            let Some(pa) = self.keyframe_pose(a.anchor_serial) else {
-                return Some(i);
-            };
-            for b in self.submaps.iter() {
-                if !b.in_use || b.anchor_serial <= a.anchor_serial {
-                    continue;
-                }
-                let Some(pb) = self.keyframe_pose(b.anchor_serial) else {
-                    continue;
-                };
-                let d = libm::hypot(pa.x - pb.x, pa.y - pb.y);
-                if best.is_none_or(|(_, bd)| d < bd) {
-                    best = Some((i, d));
-                }
-            }
-        }
-        best.map(|(i, _)| i)
-    }
-
-    fn insert_into_submap(&mut self, slot: u16, pose: &Se2) {
-        let per = self.cells_per_submap;
-        let s = slot as usize;
-        let Some(meta) = self.submaps.get_mut(s) else {
-            return;
-        };
-        let local = meta.anchor_frontend.between(pose);
-        meta.keyframes += 1;
-        let Some(cells) = self.cells.get_mut(s * per..(s + 1) * per) else {
-            return;
-        };
-        if let Ok(mut grid) = Submap::from_cells(Se2::IDENTITY, self.cfg.grid, cells) {
-            let _ = grid.insert_scan(&local, &Se2::IDENTITY, self.scan);
-        }
-        if self.st.pyramid_of == Some(slot) {
-            self.st.pyramid_of = None;
-        }
+    /// Node `index` as the GPE ties to it.
+    fn tie(&self, index: usize) -> Option<NodeTie> {
+        let (node, meta) = (self.graph.nodes().get(index)?, self.meta.get(index)?);
+        Some(NodeTie {
+            estimate: node.pose,
+            frontend: meta.frontend,
+            travel: meta.travel,
+        })
     }
 
     /// Asks for an optimization at the next back-end step even without new loop closures (e.g.
     /// to settle the map at the end of a run).
     pub fn request_optimization(&mut self) {
-        self.st.pending_loop = true;
+        self.st.backend.loop_added();
     }
 
-    /// Runs one back-end step of at most `iterations` Gauss-Newton iterations.
+    /// Runs one back-end step of at most `iterations` Gauss-Newton iterations; a finished
+    /// optimization chooses the GPE's anchor.
     pub fn step_backend(&mut self, iterations: u32) -> BackendStep {
-        if !self.st.optimizing {
-            let due = self.st.pending_loop
-                || self.st.pending_keyframes >= self.cfg.backend.every_keyframes;
-            if !due || self.graph.node_count() < 2 {
-                return BackendStep::Idle;
-            }
-            self.st.optimizing = true;
-            self.st.iterations_done = 0;
-            self.st.pending_loop = false;
-            self.st.pending_keyframes = 0;
+        let params = self.cfg.schedule();
+        let step = self
+            .st
+            .backend
+            .step(&mut self.graph, &mut self.solver, &params, iterations);
+        if step == BackendStep::Finished {
+            let candidates = self.nodes().iter().zip(self.graph.nodes()).rev();
+            let anchor = choose_anchor(
+                candidates.map(|(m, n)| AnchorCandidate {
+                    serial: m.serial,
+                    estimate: n.pose,
+                    travel: m.travel,
+                }),
+                &self.cfg.noise,
+            );
+            self.st.gpe.set_anchor(anchor);
         }
-        self.st.stats.backend_steps += 1;
-        let budget = iterations.max(1).min(
-            self.cfg
-                .backend
-                .max_iterations
-                .saturating_sub(self.st.iterations_done)
-                .max(1),
-        );
-        let options = SolverOptions {
-            method: Method::GaussNewton,
-            max_iterations: budget,
-            linear_init: false,
-            gate_chi2: self.cfg.backend.gate_chi2,
-            ..SolverOptions::default()
-        };
-        let result = solver::solve(&mut self.graph, &mut self.solver, &options);
-        let (done, failed) = match result {
-            Ok(r) => {
-                self.st.iterations_done += r.iterations;
-                (true, false)
-            }
-            Err(f) if f.error == SolveError::MaxIterations => {
-                self.st.iterations_done += f.report.iterations;
-                (
-                    self.st.iterations_done >= self.cfg.backend.max_iterations,
-                    false,
-                )
-            }
-            Err(_) => (true, true),
-        };
-        if !done {
-            return BackendStep::Working;
-        }
-        self.st.optimizing = false;
-        if failed {
-            self.st.stats.optimization_failures += 1;
-        }
-        self.st.stats.optimizations += 1;
-        self.st.anchor = self.choose_anchor();
-        BackendStep::Finished
-    }
-
-    /// The anchor: among the optimized nodes of the newest submaps, the one nearest to the
-    /// newest optimized node in squared Mahalanobis distance under the front-end uncertainty
-    /// between them (the newest node itself unless it was removed).
-    fn choose_anchor(&self) -> Option<u32> {
-        let nodes = self.nodes();
-        let last = nodes.last()?;
-        let f = self.graph.nodes().get(nodes.len() - 1)?.pose;
-        let mut best: Option<(u32, f64)> = None;
-        for (i, m) in nodes.iter().enumerate().rev().take(32) {
-            let Some(node) = self.graph.nodes().get(i) else {
-                continue;
-            };
-            let cov = self
-                .cfg
-                .noise
-                .covariance(last.path - m.path, last.rotation - m.rotation);
-            let d = crate::geom::pose_squared_mahalanobis(&node.pose, &f, &cov)
-                .unwrap_or(f64::INFINITY);
-            if best.is_none_or(|(_, b)| d < b) {
-                best = Some((m.serial, d));
-            }
-        }
-        best.map(|(s, _)| s)
+        step
     }
 }
 

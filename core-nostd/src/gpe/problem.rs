@@ -1,27 +1,13 @@
-//! Global pose estimation (GPE, the paper's section III-C) and the worst-case prediction.
-//!
-//! Every frame the real-time pose `x_k` is the minimiser of a three-variable problem: a set of
-//! Gaussian "pose measurements" of `x_k`, each a target pose with a covariance, the ones that
-//! come from the map weighted by a Huber kernel. The mapper feeds it:
-//! * the **prediction**: the previous real-time pose composed with the front-end's motion since
-//!   the previous frame (the motion model; no robust kernel);
-//! * the **reference term**: the reference node's current estimate composed with the front-end's
-//!   motion since that node, with the covariance compounded since it (the paper's odometry
-//!   residual `zeta_k`);
-//! * the **anchor term**: the anchor node (the optimized node nearest, in Mahalanobis distance,
-//!   to the last optimized pose) composed with the front-end's motion since it (`alpha_k`).
+//! The GPE problem (the paper's eq. 5): the real-time pose `x_k` as the minimiser of a few
+//! Gaussian "pose measurements" of it, each a target pose with a covariance; the terms that come
+//! from the map are weighted by a Huber kernel.
 //!
 //! Residuals are taken in the world frame with the covariances rotated into it, so each term is
 //! linear in `x_k` and the problem is a weighted mean solved by iteratively reweighted least
 //! squares (the Huber weights). The Huber kernel bounds how far one frame can move towards a
-//! target that disagrees with the prediction: a back-end correction of a metre is absorbed over
-//! a number of frames instead of in one jump, which keeps the real-time trajectory locally
+//! target that disagrees with the prediction: a large back-end correction is absorbed over a
+//! number of frames instead of in one jump, which keeps the real-time trajectory locally
 //! consistent.
-//!
-//! **Worst-case prediction** (eqs. 6-7): when the estimate cannot be computed in time (the
-//! caller says the deadline passed, or the iterations ran out before convergence), the output is
-//! the previous corrected pose composed with the odometry increment, `T_k (+) dT_od,k+1`, which
-//! is the prediction term alone.
 
 use nalgebra::{Matrix3, Vector3};
 
@@ -53,6 +39,15 @@ impl PoseTerm {
             huber,
         }
     }
+}
+
+/// Adds the variances of the standard deviations `[metres, radians]` to the diagonal of `cov`
+/// (independent noise on top of a compounded covariance).
+pub fn inflate(cov: &mut Cov3, sigma: [f64; 2]) {
+    let [xy, th] = sigma;
+    cov[(0, 0)] += xy * xy;
+    cov[(1, 1)] += xy * xy;
+    cov[(2, 2)] += th * th;
 }
 
 /// GPE parameters.
@@ -154,12 +149,6 @@ pub fn solve(terms: &[PoseTerm], config: &GpeConfig) -> Option<GpeSolution> {
     })
 }
 
-/// The worst-case prediction of eq. (7): the previous corrected pose composed with the
-/// odometry increment since it.
-pub fn worst_case(previous: &Se2, increment: &Se2) -> Se2 {
-    previous.compose(increment)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -254,12 +243,5 @@ mod tests {
         };
         assert_eq!(solve(&[t], &GpeConfig::default()), None);
         assert_eq!(solve(&[], &GpeConfig::default()), None);
-    }
-
-    #[test]
-    fn worst_case_is_previous_pose_plus_increment() {
-        let p = worst_case(&Se2::new(1.0, 2.0, 0.5), &Se2::new(0.1, 0.0, 0.1));
-        let q = Se2::new(1.0, 2.0, 0.5).compose(&Se2::new(0.1, 0.0, 0.1));
-        assert_eq!(p, q);
     }
 }

@@ -1,0 +1,154 @@
+//! Frame nodes (the paper's section III-B.3): a keyframe becomes a node of the pose graph.
+//!
+//! The keyframe decision ([`KeyframeSelector`]) is taken on the front-end pose. The new node
+//! enters the graph at the real-time (GPE) pose, tied to the previous node by an odometry edge:
+//! the front-end motion between the two, with the information of the motion-uncertainty model
+//! over the travel between them. Before that, a pool too full for the node and its edges is
+//! pruned (module `pool`); if no room is made the keyframe is dropped and counted.
+//!
+//! Each node keeps, besides its graph estimate, a [`NodeMeta`]: its serial (stable while graph
+//! indices change under pruning), its stamp, front-end pose and travel, and the submap its scan
+//! went into. The scan then updates the maps (module `submaps`).
+
+use super::{Mapper, NO_SUBMAP};
+use crate::backend::schedule::pool_nearly_full;
+use crate::frontend::lidar::{MotionNoise, Travel};
+use crate::frontend::{KeyframeConfig, KeyframeSelector};
+use crate::geom::{spd_inverse, Cov3, Info3, Se2};
+use crate::graph::{EdgeKind, PoseEdge};
+use crate::storage::NodeId;
+
+/// What the mapper remembers about a frame node besides its pose-graph estimate.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NodeMeta {
+    /// Keyframe number, counting from 0 (stable while the graph's indices are not).
+    pub serial: u32,
+    /// Time stamp, ns.
+    pub stamp: i64,
+    /// Front-end pose when the keyframe was taken.
+    pub frontend: Se2,
+    /// Front-end travel at the keyframe.
+    pub travel: Travel,
+    /// Submap slot its scan went into.
+    pub submap: u16,
+}
+
+impl NodeMeta {
+    /// Placeholder for storage initialisers.
+    pub const EMPTY: NodeMeta = NodeMeta {
+        serial: 0,
+        stamp: 0,
+        frontend: Se2::IDENTITY,
+        travel: Travel::ZERO,
+        submap: NO_SUBMAP,
+    };
+}
+
+/// The keyframe decision and the serial of the next frame node.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct FrameState {
+    selector: KeyframeSelector,
+    next_serial: u32,
+}
+
+impl FrameState {
+    pub(crate) const fn new(keyframe: KeyframeConfig) -> Self {
+        FrameState {
+            selector: KeyframeSelector::new(keyframe),
+            next_serial: 0,
+        }
+    }
+
+    /// Serial of the newest frame node (0 before the first).
+    pub(crate) fn newest_serial(&self) -> u32 {
+        self.next_serial.saturating_sub(1)
+    }
+}
+
+/// Graph index of the node `serial` among `nodes` (sorted by serial).
+pub(crate) fn node_index(nodes: &[NodeMeta], serial: u32) -> Option<usize> {
+    nodes.binary_search_by_key(&serial, |m| m.serial).ok()
+}
+
+/// Information of a covariance, the identity when it cannot be inverted.
+fn fixed_info(cov: &Cov3) -> Info3 {
+    spd_inverse(cov).unwrap_or_else(Info3::identity)
+}
+
+impl Mapper<'_> {
+    /// Makes the scan at front-end pose `pose` a frame node when it is a keyframe; its serial
+    /// when one was made.
+    pub(crate) fn keyframe(&mut self, stamp: i64, pose: &Se2, global: &Se2) -> Option<u32> {
+        if !self.st.frames.selector.is_keyframe(pose) {
+            return None;
+        }
+        let serial = self.add_frame_node(stamp, pose, global)?;
+        self.st.frames.selector.accept(*pose);
+        Some(serial)
+    }
+
+    /// Adds a frame node at `global` with its odometry edge, then updates the maps; `None`
+    /// when a pool is full.
+    fn add_frame_node(&mut self, stamp: i64, pose: &Se2, global: &Se2) -> Option<u32> {
+        let travel = self.st.frontend.travel();
+        let n = self.graph.node_count();
+        let odometry_edge = if n > 0 {
+            let prev = self.meta.get(n - 1).copied()?;
+            let rel = prev.frontend.between(pose);
+            let cov = self.cfg.noise.over(&travel.since(&prev.travel));
+            Some(PoseEdge::new(
+                NodeId((n - 1) as u32),
+                NodeId(n as u32),
+                rel,
+                fixed_info(&cov),
+                EdgeKind::Odometry,
+            ))
+        } else {
+            None
+        };
+        if pool_nearly_full(&self.graph) {
+            self.prune_pool();
+        }
+        // Pruning renumbers the nodes: the edge joins the newest two as they are now.
+        let n = self.graph.node_count();
+        let odometry_edge = odometry_edge.map(|e| PoseEdge {
+            from: NodeId((n - 1) as u32),
+            to: NodeId(n as u32),
+            ..e
+        });
+        if n >= self.graph.node_capacity()
+            || (odometry_edge.is_some() && self.graph.edge_count() >= self.graph.edge_capacity())
+        {
+            self.st.stats.keyframes_dropped += 1;
+            return None;
+        }
+        let id = self.graph.add_node(*global).ok()?;
+        if let Some(e) = odometry_edge {
+            if self.graph.add_edge(e).is_err() {
+                // Cannot happen after the capacity check; undo the node to stay consistent.
+                self.graph.truncate_nodes(n);
+                self.st.stats.keyframes_dropped += 1;
+                return None;
+            }
+        }
+        let serial = self.st.frames.next_serial;
+        self.st.frames.next_serial += 1;
+        self.st.stats.keyframes += 1;
+        self.st.backend.keyframe_added();
+        let submap = self.submap_for(serial, pose);
+        if let Some(m) = self.meta.get_mut(id.0 as usize) {
+            *m = NodeMeta {
+                serial,
+                stamp,
+                frontend: *pose,
+                travel,
+                submap: submap.unwrap_or(NO_SUBMAP),
+            };
+        }
+        if let Some(slot) = submap {
+            self.insert_into_submap(slot, pose);
+        }
+        self.update_local_map(pose);
+        Some(serial)
+    }
+}

@@ -1,0 +1,155 @@
+//! The values that cross the mapper's API: the scan lent in, the result of a frame, the
+//! counters of a run and the errors.
+
+use crate::frontend::scan::BeamGeometry;
+use crate::geom::Se2;
+
+/// Counters of a run.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct MapperStats {
+    /// Scans accepted.
+    pub scans: u32,
+    /// Scans rejected because their stamp was not after the previous scan's.
+    pub scans_out_of_order: u32,
+    /// Scans rejected with no usable point (empty, all invalid) or a bad geometry.
+    pub scans_empty: u32,
+    /// Beams dropped as NaN or infinite.
+    pub beams_invalid: u32,
+    /// Scans whose ICP failed or was too weak (the odometry seed was used).
+    pub icp_failures: u32,
+    /// Scans matched with a degenerate direction left at the seed.
+    pub icp_degenerate: u32,
+    /// Scans without an odometry increment (no wheel data around their time).
+    pub odometry_gaps: u32,
+    /// Odometry and gyro samples rejected (order, non-finite).
+    pub odometry_rejected: u32,
+    /// Scans whose odometry stood still (an increment of exactly zero) while the scan matcher
+    /// saw the robot move: a stalled odometry stream, whose motion arrives later in one burst.
+    pub odometry_stalls: u32,
+    /// Keyframes (frame nodes) created.
+    pub keyframes: u32,
+    /// Keyframes not created because a pool was full.
+    pub keyframes_dropped: u32,
+    /// Submaps opened.
+    pub submaps: u32,
+    /// Submaps recycled because the pool was full.
+    pub submaps_recycled: u32,
+    /// Loop-closure searches (one per candidate submap).
+    pub loop_searches: u32,
+    /// Loop closures added.
+    pub loop_closures: u32,
+    /// Searches where the correlative search found nothing above the score threshold.
+    pub loops_no_match: u32,
+    /// Correlative matches rejected by the refinement (ICP failure, fitness, RMS, degeneracy).
+    pub loops_rejected: u32,
+    /// Matches not (yet) confirmed by a second agreeing one.
+    pub loops_unconfirmed: u32,
+    /// GPE updates solved.
+    pub gpe_solved: u32,
+    /// Frames that used the worst-case prediction.
+    pub gpe_predicted: u32,
+    /// Back-end optimizations finished.
+    pub optimizations: u32,
+    /// Back-end steps run.
+    pub backend_steps: u32,
+    /// Back-end optimizations that failed (the estimate was kept).
+    pub optimization_failures: u32,
+    /// Times a full node or edge pool was pruned.
+    pub prunes: u32,
+    /// Nodes eliminated by pruning.
+    pub nodes_pruned: u32,
+}
+
+impl MapperStats {
+    /// All counters at zero.
+    pub const ZERO: MapperStats = MapperStats {
+        scans: 0,
+        scans_out_of_order: 0,
+        scans_empty: 0,
+        beams_invalid: 0,
+        icp_failures: 0,
+        icp_degenerate: 0,
+        odometry_gaps: 0,
+        odometry_rejected: 0,
+        odometry_stalls: 0,
+        keyframes: 0,
+        keyframes_dropped: 0,
+        submaps: 0,
+        submaps_recycled: 0,
+        loop_searches: 0,
+        loop_closures: 0,
+        loops_no_match: 0,
+        loops_rejected: 0,
+        loops_unconfirmed: 0,
+        gpe_solved: 0,
+        gpe_predicted: 0,
+        optimizations: 0,
+        backend_steps: 0,
+        optimization_failures: 0,
+        prunes: 0,
+        nodes_pruned: 0,
+    };
+}
+
+/// Errors of the mapper.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum MapperError {
+    /// The resources do not match the configuration (grid size, pyramid levels).
+    Storage(&'static str),
+    /// The configuration is not usable.
+    Config(&'static str),
+    /// The scan's stamp is not after the previous scan's (rejected, counted).
+    OutOfOrder,
+    /// The scan has no usable point or an invalid geometry (rejected, counted).
+    EmptyScan,
+    /// A sample with a bad order or value (rejected, counted).
+    BadSample,
+}
+
+impl core::fmt::Display for MapperError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            MapperError::Storage(what) => write!(f, "mapper storage does not fit: {what}"),
+            MapperError::Config(what) => write!(f, "invalid mapper configuration: {what}"),
+            MapperError::OutOfOrder => f.write_str("scan time stamp not after the previous one"),
+            MapperError::EmptyScan => f.write_str("scan without usable points"),
+            MapperError::BadSample => f.write_str("odometry or gyro sample rejected"),
+        }
+    }
+}
+
+impl core::error::Error for MapperError {}
+
+/// One laser scan lent to the mapper.
+#[derive(Clone, Copy, Debug)]
+pub struct ScanInput<'a> {
+    /// Time stamp, ns.
+    pub stamp: i64,
+    /// Ranges, metres (NaN / infinite beams are dropped and counted).
+    pub ranges: &'a [f32],
+    /// Beam geometry.
+    pub geometry: BeamGeometry,
+    /// Pose of the scanner on the robot.
+    pub mounting: Se2,
+}
+
+/// The result of one accepted scan.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FrameOutput {
+    /// Time stamp, ns.
+    pub stamp: i64,
+    /// Real-time global pose of the robot (GPE or worst-case prediction).
+    pub pose: Se2,
+    /// Front-end pose (LiDAR odometry, drifting frame).
+    pub frontend: Se2,
+    /// Serial of the reference keyframe the pose hangs off (the newest at this scan).
+    pub reference_serial: u32,
+    /// This scan became a keyframe.
+    pub keyframe: bool,
+    /// The pose is the worst-case prediction (deadline passed or GPE not converged).
+    pub predicted: bool,
+    /// Loop closures added for this scan.
+    pub loops: u8,
+}
