@@ -158,10 +158,15 @@ impl<'a> Pyramid<'a> {
         self.levels
     }
 
+    /// Cells per side of every level.
+    pub fn side(&self) -> usize {
+        self.side
+    }
+
     /// Value of level `k` for the window starting at `(x, y)`: an upper bound of the cells of
     /// the window inside the submap, 0 when none is.
     #[inline]
-    fn bound(&self, k: usize, x: i32, y: i32) -> u32 {
+    pub(crate) fn bound(&self, k: usize, x: i32, y: i32) -> u32 {
         let w = 1i32 << k;
         let s = self.side as i32;
         if x <= -w || y <= -w || x >= s || y >= s {

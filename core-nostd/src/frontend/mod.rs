@@ -6,6 +6,7 @@
 //! nothing reads a clock. Scan points and grid cells are `f32`, poses `f64`.
 
 pub mod csm;
+pub mod far_csm;
 pub mod grid;
 pub mod icp;
 pub mod kdtree;

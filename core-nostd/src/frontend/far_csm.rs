@@ -1,0 +1,514 @@
+//! Far loop search: where in a submap a scan fits, over every heading and a translation window
+//! as wide as the submap, by branch and bound over the max-pooled levels of [`csm`], with a
+//! bounded amount of work per call.
+//!
+//! The paper's back-end (section III-C) only prunes and optimizes the constraints it is given;
+//! when the drift between a revisit and the first visit is tens of metres and the heading is
+//! unknown, the windowed search of [`csm`] never produces the constraint. This search widens
+//! the window to a full turn and to the whole submap, and pays for it in two ways:
+//!
+//! * The leaves are scored at a coarse level `base` of the pyramid (a block of `2^base` cells
+//!   per candidate, the maximum of the block per point), so the translations are stepped by
+//!   `2^base` cells and the rotations by the angle that moves the farthest point by one coarse
+//!   cell. The coarse maximum is an upper bound of the fine score around it; the caller refines
+//!   the coarse pose with the windowed [`csm::search`] and ICP, which decide.
+//! * The work is split into calls of at most about `budget` candidate evaluations. The state
+//!   between calls ([`FarSearch`]) holds a copy of the scan's points (subsampled into fixed
+//!   storage), the next rotation and top-level cell to visit and the best leaf so far, so the
+//!   search can be spread over many back-end steps while the front-end keeps running.
+//!
+//! Rotations are visited nearest to the seed's heading first (0, +1, -1, +2, ...) so a good
+//! estimate raises the best score early and cuts more of the remaining tree. Within one
+//! rotation the search is the depth-first, best-child-first descent of [`csm`]: a branch
+//! whose bound does not beat the best leaf found so far is cut, so the result is the exact
+//! maximum of the coarse score over the discretized window.
+//!
+//! [`csm`]: crate::frontend::csm
+//! [`csm::search`]: crate::frontend::csm::search
+
+use core::f64::consts::PI;
+
+use crate::frontend::csm::{CsmError, Pyramid};
+use crate::frontend::grid::Submap;
+use crate::frontend::scan::ScanPoint;
+use crate::geom::Se2;
+
+/// Most scan points kept for the coarse search.
+pub const FAR_POINTS: usize = 160;
+/// Cell coordinates are clamped to this magnitude.
+const FAR: i32 = 1 << 24;
+
+/// Parameters of a far search.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct FarCsmConfig {
+    /// Pyramid level the leaves are scored at (`2^base` cells per candidate).
+    pub base_level: u8,
+    /// Smallest coarse score kept, in `[0, 1]` (the coarse score is an upper bound of the
+    /// fine one, so this is at least the fine threshold).
+    pub min_score: f32,
+    /// The rotation step is derived from the scan's farthest point, but that distance is taken
+    /// as at most this, metres (long beams would make the step needlessly fine).
+    pub step_range: f32,
+}
+
+impl Default for FarCsmConfig {
+    fn default() -> Self {
+        FarCsmConfig {
+            base_level: 2,
+            min_score: 0.6,
+            step_range: 12.0,
+        }
+    }
+}
+
+/// The coarse result of a finished search.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FarMatch {
+    /// Pose of the scan in the world (the submap's origin composed with the local pose).
+    pub pose: Se2,
+    /// Mean of the coarse (max-pooled) occupancy at the scan's points.
+    pub score: f32,
+    /// Rotation step of the search, radians (the refinement's angular window).
+    pub angular_step: f64,
+    /// Translation step of the leaves, metres (the refinement's translation window).
+    pub cell: f64,
+}
+
+/// Outcome of one call of [`FarSearch::step`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum FarStep {
+    /// The budget ran out; call again with the same submap.
+    Working,
+    /// The window has been searched; the best coarse match above the threshold, if any.
+    Done(Option<FarMatch>),
+}
+
+/// A resumable far search of one scan in one submap, in fixed storage.
+#[derive(Clone, Debug)]
+pub struct FarSearch {
+    points: heapless::Vec<[f32; 2], FAR_POINTS>,
+    seed: Se2,
+    window_xy: f64,
+    config: FarCsmConfig,
+    started: bool,
+    next_angle: u32,
+    next_top: u32,
+    best: u32,
+    best_at: Option<(u32, i32, i32)>,
+    evaluated: u64,
+}
+
+impl Default for FarSearch {
+    fn default() -> Self {
+        FarSearch::new()
+    }
+}
+
+struct Bnb<'p, 'a> {
+    pyramid: &'p Pyramid<'a>,
+    base: usize,
+    window: i32,
+    best: u32,
+    best_at: Option<(u32, i32, i32)>,
+    evaluated: u64,
+}
+
+impl Bnb<'_, '_> {
+    fn score(&mut self, cells: &[[i32; 2]], k: usize, dx: i32, dy: i32) -> u32 {
+        self.evaluated += 1;
+        cells
+            .iter()
+            .map(|c| self.pyramid.bound(k, c[0] + dx, c[1] + dy))
+            .sum()
+    }
+
+    fn descend(&mut self, cells: &[[i32; 2]], angle: u32, k: usize, dx: i32, dy: i32, b: u32) {
+        if b <= self.best {
+            return;
+        }
+        if k == self.base {
+            self.best = b;
+            self.best_at = Some((angle, dx, dy));
+            return;
+        }
+        let h = 1i32 << (k - 1);
+        let mut children = [(0u32, 0i32, 0i32); 4];
+        let mut n = 0;
+        for (ox, oy) in [(0, 0), (h, 0), (0, h), (h, h)] {
+            let (cx, cy) = (dx + ox, dy + oy);
+            if cx > self.window || cy > self.window {
+                continue;
+            }
+            children[n] = (self.score(cells, k - 1, cx, cy), cx, cy);
+            n += 1;
+        }
+        let children = &mut children[..n];
+        children.sort_unstable_by_key(|c| core::cmp::Reverse(c.0));
+        for &(cb, cx, cy) in children.iter() {
+            self.descend(cells, angle, k - 1, cx, cy, cb);
+        }
+    }
+}
+
+/// Signed rotation index of the `i`-th rotation visited: 0, 1, -1, 2, -2, ...
+fn angle_offset(i: u32) -> i64 {
+    let i = i as i64;
+    if i % 2 == 1 {
+        (i + 1) / 2
+    } else {
+        -(i / 2)
+    }
+}
+
+impl FarSearch {
+    /// An idle search.
+    pub const fn new() -> Self {
+        FarSearch {
+            points: heapless::Vec::new(),
+            seed: Se2::IDENTITY,
+            window_xy: 0.0,
+            config: FarCsmConfig {
+                base_level: 2,
+                min_score: 0.6,
+                step_range: 12.0,
+            },
+            started: false,
+            next_angle: 0,
+            next_top: 0,
+            best: 0,
+            best_at: None,
+            evaluated: 0,
+        }
+    }
+
+    /// Whether a search was started and has not finished.
+    pub fn is_active(&self) -> bool {
+        self.started
+    }
+
+    /// Candidates scored since [`FarSearch::start`].
+    pub fn evaluated(&self) -> u64 {
+        self.evaluated
+    }
+
+    /// Forgets the search in progress.
+    pub fn cancel(&mut self) {
+        self.started = false;
+    }
+
+    /// Starts a search of `scan` (robot frame) around the world pose `seed`, over translations
+    /// within `window_xy` metres on each axis and every heading.
+    ///
+    /// # Errors
+    /// [`CsmError::EmptyScan`] without points, [`CsmError::InvalidConfig`] for a non-finite
+    /// seed or window or a threshold outside `[0, 1]`.
+    pub fn start(
+        &mut self,
+        scan: &[ScanPoint],
+        seed: &Se2,
+        window_xy: f64,
+        config: &FarCsmConfig,
+    ) -> Result<(), CsmError> {
+        self.started = false;
+        if scan.is_empty() {
+            return Err(CsmError::EmptyScan);
+        }
+        if !(seed.is_finite()
+            && window_xy.is_finite()
+            && window_xy >= 0.0
+            && (0.0..=1.0).contains(&config.min_score)
+            && config.step_range.is_finite()
+            && config.step_range > 0.0)
+        {
+            return Err(CsmError::InvalidConfig);
+        }
+        self.points.clear();
+        let stride = scan.len().div_ceil(FAR_POINTS);
+        for q in scan.iter().step_by(stride) {
+            if q.p[0].is_finite() && q.p[1].is_finite() {
+                let _ = self.points.push(q.p);
+            }
+        }
+        if self.points.is_empty() {
+            return Err(CsmError::EmptyScan);
+        }
+        self.seed = *seed;
+        self.window_xy = window_xy;
+        self.config = *config;
+        self.started = true;
+        self.next_angle = 0;
+        self.next_top = 0;
+        self.best = 0;
+        self.best_at = None;
+        self.evaluated = 0;
+        Ok(())
+    }
+
+    /// Continues the search in `submap` (with its `pyramid`) for about `budget` more candidate
+    /// evaluations (a top-level cell's subtree is finished once begun, so a call may overrun
+    /// by one subtree). The submap and pyramid must be the same on every call of one search.
+    ///
+    /// # Errors
+    /// [`CsmError::InvalidConfig`] when no search is active or the base level is not below the
+    /// pyramid's top; [`CsmError::WrongStorage`] when the pyramid does not fit the submap.
+    pub fn step(
+        &mut self,
+        submap: &Submap<impl AsRef<[i8]>>,
+        pyramid: &Pyramid<'_>,
+        budget: u32,
+    ) -> Result<FarStep, CsmError> {
+        if !self.started {
+            return Err(CsmError::InvalidConfig);
+        }
+        if pyramid.side() != submap.params().side as usize {
+            return Err(CsmError::WrongStorage);
+        }
+        let top = pyramid.levels() - 1;
+        let base = self.config.base_level as usize;
+        if base >= top {
+            self.started = false;
+            return Err(CsmError::InvalidConfig);
+        }
+        let res = submap.params().resolution as f64;
+        let coarse = res * (1u32 << base) as f64;
+        let far = self
+            .points
+            .iter()
+            .map(|p| libm::sqrtf(p[0] * p[0] + p[1] * p[1]))
+            .fold(0.0f32, f32::max)
+            .min(self.config.step_range) as f64;
+        let far = far.max(3.0 * coarse);
+        let step = libm::acos(1.0 - coarse * coarse / (2.0 * far * far));
+        let angles = libm::ceil(2.0 * PI / step) as u32;
+        let window = libm::ceil(self.window_xy / res) as i32;
+        let span = 1i32 << top;
+        let per_row = (2 * window) / span + 1;
+        let tops = (per_row * per_row) as u32;
+        let count = self.points.len();
+        let threshold = (self.config.min_score as f64 * 255.0 * count as f64) as u32;
+        let local = submap.to_local(&self.seed);
+        let mut bnb = Bnb {
+            pyramid,
+            base,
+            window,
+            best: self.best.max(threshold.saturating_sub(1)),
+            best_at: self.best_at,
+            evaluated: 0,
+        };
+        let mut cells: heapless::Vec<[i32; 2], FAR_POINTS> = heapless::Vec::new();
+        let mut cells_angle = u32::MAX;
+        while self.next_angle < angles && bnb.evaluated < budget as u64 {
+            let a = self.next_angle;
+            if cells_angle != a {
+                let theta = local.theta + angle_offset(a) as f64 * step;
+                let (ct, st) = (libm::cos(theta) as f32, libm::sin(theta) as f32);
+                let (tx, ty) = (local.x as f32, local.y as f32);
+                cells.clear();
+                for q in self.points.iter() {
+                    let g = submap
+                        .local_to_cell([tx + ct * q[0] - st * q[1], ty + st * q[0] + ct * q[1]]);
+                    // Far or NaN points land far outside (score 0) without overflowing.
+                    let clamp = |v: f32| {
+                        if v.is_nan() {
+                            FAR
+                        } else {
+                            crate::geom::floor_to_i32(v).clamp(-FAR, FAR)
+                        }
+                    };
+                    let _ = cells.push([clamp(g[0]), clamp(g[1])]);
+                }
+                cells_angle = a;
+            }
+            let t = self.next_top as i32;
+            let dx = -window + (t % per_row) * span;
+            let dy = -window + (t / per_row) * span;
+            let b = bnb.score(&cells, top, dx, dy);
+            bnb.descend(&cells, a, top, dx, dy, b);
+            self.next_top += 1;
+            if self.next_top >= tops {
+                self.next_top = 0;
+                self.next_angle += 1;
+            }
+        }
+        self.best = bnb.best;
+        self.best_at = bnb.best_at;
+        self.evaluated += bnb.evaluated;
+        if self.next_angle < angles {
+            return Ok(FarStep::Working);
+        }
+        self.started = false;
+        let Some((a, dx, dy)) = self.best_at else {
+            return Ok(FarStep::Done(None));
+        };
+        // The leaf covers `2^base` cells from its corner: report its middle.
+        let mid = 0.5 * ((1u32 << base) as f64 - 1.0);
+        let found = Se2::new(
+            local.x + (dx as f64 + mid) * res,
+            local.y + (dy as f64 + mid) * res,
+            crate::geom::wrap_angle(local.theta + angle_offset(a) as f64 * step),
+        );
+        Ok(FarStep::Done(Some(FarMatch {
+            pose: submap.origin().compose(&found),
+            score: (self.best as f64 / (255.0 * count as f64)) as f32,
+            angular_step: step,
+            cell: coarse,
+        })))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frontend::csm::{search, CsmConfig};
+    use crate::frontend::grid::GridParams;
+    use crate::frontend::scan::tests::{room, scan_at};
+    use crate::frontend::scan::{preprocess, PreprocessConfig, ScanPoints};
+
+    const SIDE: usize = 120;
+
+    fn scan(pose: Se2, voxel: f32, out: &mut ScanPoints) {
+        let mut ranges = [0.0f32; 720];
+        let g = scan_at(pose, 720, &room(), &mut ranges);
+        let cfg = PreprocessConfig {
+            voxel_size: voxel,
+            ..PreprocessConfig::default()
+        };
+        preprocess(&ranges, &g, &cfg, out).unwrap();
+    }
+
+    fn params() -> GridParams {
+        GridParams {
+            side: SIDE as u16,
+            ..GridParams::HOME
+        }
+    }
+
+    fn build_map(cells: &mut [i8]) -> Submap<&mut [i8]> {
+        let mut map = Submap::new(Se2::new(0.5, 0.5, 0.0), params(), cells).unwrap();
+        let mut s: ScanPoints = heapless::Vec::new();
+        for pose in [
+            Se2::IDENTITY,
+            Se2::new(-0.5, 0.8, -0.3),
+            Se2::new(2.0, -0.7, 1.0),
+        ] {
+            scan(pose, 0.0, &mut s);
+            map.insert_scan(&pose, &Se2::IDENTITY, &s).unwrap();
+        }
+        map
+    }
+
+    fn run(
+        far: &mut FarSearch,
+        map: &Submap<&mut [i8]>,
+        pyr: &Pyramid<'_>,
+        budget: u32,
+    ) -> (Option<FarMatch>, u32) {
+        let mut calls = 0;
+        loop {
+            calls += 1;
+            match far.step(map, pyr, budget).unwrap() {
+                FarStep::Working => continue,
+                FarStep::Done(m) => return (m, calls),
+            }
+        }
+    }
+
+    #[test]
+    fn finds_a_pose_two_metres_and_a_half_turn_away_and_the_fine_search_confirms_it() {
+        let mut cells = [0i8; SIDE * SIDE];
+        let map = build_map(&mut cells);
+        let mut storage = [0u8; SIDE * SIDE * 5];
+        let pyr = Pyramid::build(&map, 5, &mut storage).unwrap();
+        let truth = Se2::new(0.9, 0.1, 2.5);
+        let mut query: ScanPoints = heapless::Vec::new();
+        scan(truth, 0.05, &mut query);
+        // Far outside any windowed search: 2.1 m and 170 degrees off.
+        let seed = Se2::new(-0.8, 1.3, 2.5 - 170f64.to_radians());
+        let mut far = FarSearch::new();
+        far.start(&query, &seed, 3.0, &FarCsmConfig::default())
+            .unwrap();
+        let (m, calls) = run(&mut far, &map, &pyr, 2_000);
+        let m = m.expect("a coarse match");
+        assert!(calls > 1, "the budget splits the search: {calls} call(s)");
+        let d = m.pose.between(&truth);
+        assert!(
+            libm::hypot(d.x, d.y) < 2.0 * m.cell && libm::fabs(d.theta) < 3.0 * m.angular_step,
+            "{m:?}"
+        );
+        // The windowed fine search around the coarse pose lands on the truth.
+        let cfg = CsmConfig {
+            window_xy: 2.0 * m.cell,
+            window_theta: 3.0 * m.angular_step,
+            ..CsmConfig::default()
+        };
+        let fine = search(&query, &map, &pyr, &m.pose, &cfg).unwrap();
+        let d = fine.pose.between(&truth);
+        assert!(
+            libm::hypot(d.x, d.y) < 0.06 && libm::fabs(d.theta) < 0.02,
+            "{fine:?}"
+        );
+    }
+
+    #[test]
+    fn result_does_not_depend_on_the_budget_split() {
+        let mut cells = [0i8; SIDE * SIDE];
+        let map = build_map(&mut cells);
+        let mut storage = [0u8; SIDE * SIDE * 5];
+        let pyr = Pyramid::build(&map, 5, &mut storage).unwrap();
+        let mut query: ScanPoints = heapless::Vec::new();
+        scan(Se2::new(-0.3, 0.4, -1.0), 0.05, &mut query);
+        let seed = Se2::new(0.6, -0.2, 1.0);
+        let cfg = FarCsmConfig::default();
+        let mut far = FarSearch::new();
+        far.start(&query, &seed, 2.0, &cfg).unwrap();
+        let (whole, one) = run(&mut far, &map, &pyr, u32::MAX);
+        let total = far.evaluated();
+        far.start(&query, &seed, 2.0, &cfg).unwrap();
+        let (split, many) = run(&mut far, &map, &pyr, 300);
+        assert_eq!(one, 1);
+        assert!(many > 10, "{many}");
+        assert_eq!(whole, split);
+        assert_eq!(total, far.evaluated());
+        assert!(whole.is_some());
+    }
+
+    #[test]
+    fn rejects_bad_input_and_reports_no_match_above_a_high_threshold() {
+        let mut cells = [0i8; SIDE * SIDE];
+        let map = build_map(&mut cells);
+        let mut storage = [0u8; SIDE * SIDE * 5];
+        let pyr = Pyramid::build(&map, 5, &mut storage).unwrap();
+        let mut far = FarSearch::new();
+        let cfg = FarCsmConfig::default();
+        assert_eq!(
+            far.start(&[], &Se2::IDENTITY, 1.0, &cfg),
+            Err(CsmError::EmptyScan)
+        );
+        let mut query: ScanPoints = heapless::Vec::new();
+        scan(Se2::IDENTITY, 0.05, &mut query);
+        assert_eq!(
+            far.start(&query, &Se2::new(f64::NAN, 0.0, 0.0), 1.0, &cfg),
+            Err(CsmError::InvalidConfig)
+        );
+        assert_eq!(
+            far.step(&map, &pyr, 10),
+            Err(CsmError::InvalidConfig),
+            "no search started"
+        );
+        let strict = FarCsmConfig {
+            min_score: 1.0,
+            ..cfg
+        };
+        far.start(&query, &Se2::IDENTITY, 1.0, &strict).unwrap();
+        assert_eq!(run(&mut far, &map, &pyr, 5_000).0, None);
+        // A base level at the pyramid's top leaves nothing to branch on.
+        let top = FarCsmConfig {
+            base_level: 4,
+            ..cfg
+        };
+        far.start(&query, &Se2::IDENTITY, 1.0, &top).unwrap();
+        assert_eq!(far.step(&map, &pyr, 10), Err(CsmError::InvalidConfig));
+        assert!(!far.is_active());
+    }
+}
