@@ -41,6 +41,7 @@ mod frames;
 mod loops;
 mod pool;
 mod submaps;
+pub mod sync;
 mod types;
 
 use crate::backend::prune::PruneScratch;
