@@ -10,6 +10,7 @@
 //! `z`, the error is `e = z^-1 (+) (x_i^-1 (+) x_j)` as `[x, y, theta]` with the angle wrapped,
 //! and the edge's cost is `e^T Omega e`. A prior on node `i` uses `e = z^-1 (+) x_i`.
 
+pub(crate) mod residual;
 mod robust;
 
 pub use robust::{MixtureComponent, RobustKernel, MAX_MIXTURE_COMPONENTS};
@@ -112,10 +113,10 @@ impl PoseEdge {
             libm::sin(self.measurement.theta),
         );
         if self.kind == EdgeKind::Prior {
-            crate::solver::prior_residual(xi, &self.measurement, cz, sz)
+            residual::prior_residual(xi, &self.measurement, cz, sz)
         } else {
             let (ci, si) = (libm::cos(xi.theta), libm::sin(xi.theta));
-            crate::solver::relative_residual(xi, ci, si, xj, &self.measurement, cz, sz).0
+            residual::relative_residual(xi, ci, si, xj, &self.measurement, cz, sz).0
         }
     }
 

@@ -18,7 +18,7 @@
 //!    inside the pose uncertainty, giving max-mixture loop edges.
 //!
 //! The **back-end** (block c, [`Mapper::step_backend`] over
-//! [`BackendSchedule`](crate::backend::schedule::BackendSchedule)) optimizes the graph in steps
+//! [`BackendSchedule`]) optimizes the graph in steps
 //! of a few Gauss-Newton iterations; a finished optimization chooses the GPE's anchor. The
 //! caller decides when to step it (every scan, in a background thread, or late on purpose to
 //! test the GPE).

@@ -22,9 +22,10 @@
 //! `R_a^T (S_b - J S_a J^T) R_a` with `J` the Jacobian of `P_a (+) T` with respect to `P_a`.
 
 use super::cholesky::{chol_inverse, mul_v, solve_in_place};
-use super::linearize::{edge_residual, info_block, quad, relative_residual};
+use super::linearize::{edge_residual, info_block, quad};
 use super::workspace::{Block, SolverBuffers};
 use crate::geom::{wrap_angle, Se2};
+use crate::graph::residual::relative_residual;
 use crate::graph::{EdgeKind, PoseEdge, PoseNode, RobustKernel};
 
 const NONE: u32 = u32::MAX;

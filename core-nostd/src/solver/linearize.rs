@@ -9,54 +9,10 @@
 
 use super::ordering::{NO_SLOT, TRANSPOSED};
 use super::workspace::{Block, Vec3};
-use crate::geom::{wrap_angle, Se2};
+use crate::graph::residual::{prior_residual, relative_residual};
 use crate::graph::{EdgeKind, PoseEdge, PoseNode};
 
 const NONE: u32 = u32::MAX;
-
-/// Residual of a relative edge and the pieces of its Jacobians: `(e, ca, sa, gx, gy)` with
-/// `J_j = [[ca, sa, 0], [-sa, ca, 0], [0, 0, 1]]` and
-/// `J_i = [[-ca, -sa, gx], [sa, -ca, gy], [0, 0, -1]]`.
-#[inline(always)]
-pub(crate) fn relative_residual(
-    xi: &Se2,
-    ci: f64,
-    si: f64,
-    xj: &Se2,
-    z: &Se2,
-    cz: f64,
-    sz: f64,
-) -> (Vec3, [f64; 4]) {
-    let dx = xj.x - xi.x;
-    let dy = xj.y - xi.y;
-    let tx = ci * dx + si * dy;
-    let ty = -si * dx + ci * dy;
-    let ux = tx - z.x;
-    let uy = ty - z.y;
-    let e = [
-        cz * ux + sz * uy,
-        -sz * ux + cz * uy,
-        wrap_angle(xj.theta - xi.theta - z.theta),
-    ];
-    let ca = ci * cz - si * sz;
-    let sa = si * cz + ci * sz;
-    let gx = cz * ty - sz * tx;
-    let gy = -sz * ty - cz * tx;
-    (e, [ca, sa, gx, gy])
-}
-
-/// Residual of a prior `z` on `x`: `e = [R(a_z)^T (t - t_z), wrap(a - a_z)]`, Jacobian
-/// `diag(R(a_z)^T, 1)`.
-#[inline(always)]
-pub(crate) fn prior_residual(x: &Se2, z: &Se2, cz: f64, sz: f64) -> Vec3 {
-    let ux = x.x - z.x;
-    let uy = x.y - z.y;
-    [
-        cz * ux + sz * uy,
-        -sz * ux + cz * uy,
-        wrap_angle(x.theta - z.theta),
-    ]
-}
 
 /// The residual of `edge` at the current poses.
 #[inline(always)]

@@ -54,8 +54,6 @@ use crate::graph::{PoseEdge, PoseGraph, PoseNode, RobustKernel};
 use crate::storage::NodeId;
 use linearize::Warm;
 
-pub(crate) use linearize::{prior_residual, relative_residual};
-
 /// The iteration scheme.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
