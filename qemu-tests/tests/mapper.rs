@@ -13,7 +13,7 @@
 //! results are expected to agree to the bit; the test asserts bit identity, not a tolerance.
 
 use cloi_host::map::config::{MapConfig, Profile};
-use cloi_host::map::run::{mapper_config, run, MapSettings, StampPolicy};
+use cloi_host::map::run::{run, MapSettings, StampPolicy};
 use cloi_host::map::{open_input, InputOptions};
 use cloi_qemu_tests::mapper::run_mapper;
 use cloi_qemu_tests::replay::Percentiles;
@@ -84,7 +84,7 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
     let profile = Profile::Home;
     let mut config = MapConfig::preset(profile);
     config.run.deterministic = true;
-    let host_cfg = mapper_config(profile, &config);
+    let host_cfg = config.to_core(&profile.core_config());
     assert_eq!(
         fw.config,
         format!("{host_cfg:?}"),

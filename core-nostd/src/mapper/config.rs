@@ -268,14 +268,12 @@ impl MapperConfig {
     /// The [`MapperConfig::stall_motion`] thresholds of the `home` profile: 1 cm, 0.01 rad.
     pub const STALL_MOTION: [f64; 2] = [0.01, 0.01];
 
-    /// Defaults for small homes (the `home` profile): 4.1 m submaps, a 10 m LiDAR, loop
-    /// searches within 1.5 m and 0.5 rad (a home is small: the drift between revisits is),
-    /// windows from the motion since the last loop closure (the cheaper search, measured
-    /// against the firmware's instruction budgets), rotated turn seeds only for a primary match
-    /// above 5 cm RMS and stalled odometry taken off its next increment (both measured on
-    /// the `home` runs of the CARMEN logs; the office profile's mit-csail result, 0.042 m,
-    /// depends on one fast turn that either change tips into a wrong ICP minimum, so it keeps
-    /// the previous front-end until turns are matched more robustly).
+    /// The `home` profile (a cleaning robot in a home, [`crate::profile::HOME`]): 4.1 m
+    /// submaps, a 10 m LiDAR, loop searches within 1.5 m and 0.5 rad (the drift between
+    /// revisits of a small home is small), windows from the motion since the last loop
+    /// closure (the cheaper search), rotated turn seeds only for a primary match above 5 cm
+    /// RMS, and stalled odometry taken off its next increment. `docs/benchmarks.md` has the
+    /// measurements behind the front-end choices.
     pub fn home() -> Self {
         let base = MapperConfig::default();
         MapperConfig {
@@ -290,6 +288,38 @@ impl MapperConfig {
                 window_from_anchor: false,
                 window_lever: 0.0,
                 ..base.loops
+            },
+            ..base
+        }
+    }
+
+    /// The `office` profile (an office floor, [`crate::profile::OFFICE`]): the defaults.
+    pub fn office() -> Self {
+        MapperConfig::default()
+    }
+
+    /// The `airport` profile (a guide robot in a hall, [`crate::profile::AIRPORT`]): 10 m
+    /// submaps at 10 cm, scans voxelised at 10 cm, a keyframe every 0.5 m and a 1 m pruning
+    /// cell, so that the graph of a 60,000 m^2 hall fits the profile's pools.
+    pub fn airport() -> Self {
+        let base = MapperConfig::office();
+        MapperConfig {
+            preprocess: PreprocessConfig {
+                voxel_size: 0.1,
+                ..base.preprocess
+            },
+            keyframe: KeyframeConfig {
+                distance: 0.5,
+                ..base.keyframe
+            },
+            grid: GridParams {
+                side: 100,
+                resolution: 0.1,
+                ..GridParams::LARGE
+            },
+            backend: BackendConfig {
+                prune_cell: 1.0,
+                ..base.backend
             },
             ..base
         }

@@ -23,6 +23,10 @@ pub struct MapArgs {
     /// TOML file overriding parts of the profile's preset (see `docs/map-config.toml`).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Overrides one key of the configuration after `--config`, as a dotted TOML key and a
+    /// value (`--set loop_closure.min_score=0.6 --set icp.huber=0.1`); repeatable.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub set: Vec<String>,
     /// Output directory (default `out/<input stem>`).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -62,7 +66,7 @@ pub fn run_command(args: &MapArgs, out: &mut dyn Write) -> Result<()> {
     } else {
         Profile::Home
     });
-    let mut config = MapConfig::load(profile, args.config.as_deref())?;
+    let mut config = MapConfig::load(profile, args.config.as_deref(), &args.set)?;
     if args.deterministic {
         config.run.deterministic = true;
     }

@@ -6,12 +6,16 @@
 //! configuration does not have is an error naming the key, the file and the keys that
 //! exist. `docs/map-config.toml` documents every field with the `home` values.
 //!
-//! These are plain host structures; the runner maps them onto the core's configuration
-//! types.
+//! The values of the presets live in the core (`MapperConfig::home`, `office`, `airport`);
+//! these structures are the file's keys, read from a core configuration
+//! ([`MapConfig::from_core`]) and written back into one ([`MapConfig::to_core`]), so a key
+//! the file documents is a value the mapper uses. `gpe.deadline_us` and `[run]` are the
+//! host's own: how the frames are timed and scheduled.
 
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
+use cloi_core::mapper::MapperConfig;
 use serde::{Deserialize, Serialize};
 
 /// A memory and size profile of the mapper.
@@ -117,10 +121,7 @@ pub struct LoopClosureSection {
     /// Smallest accepted match score, in [0, 1].
     pub min_score: f32,
     /// Most candidate submaps searched per keyframe.
-    pub max_candidates: u16,
-    /// Squared Mahalanobis distance (3 degrees of freedom) within which a submap is a
-    /// candidate, given the current pose's uncertainty.
-    pub mahalanobis_gate: f64,
+    pub max_candidates: u8,
 }
 
 /// Global pose estimation (the real-time pose of every frame).
@@ -178,108 +179,112 @@ pub struct MapConfig {
     pub run: RunSection,
 }
 
+impl Profile {
+    /// The core's configuration of this profile: the one place the presets' values live
+    /// (the firmware uses the same functions).
+    pub fn core_config(self) -> MapperConfig {
+        match self {
+            Profile::Home => MapperConfig::home(),
+            Profile::Office => MapperConfig::office(),
+            Profile::Airport => MapperConfig::airport(),
+        }
+    }
+}
+
+/// The real-time deadline the host gives every frame unless the file says otherwise: well
+/// above a frame's typical cost on the robot computer, well below a LiDAR's 100 ms period.
+const DEFAULT_DEADLINE_US: u64 = 5_000;
+
 impl MapConfig {
-    /// The preset of a profile.
+    /// The preset of a profile: the core's configuration seen through the file's keys.
     pub fn preset(profile: Profile) -> Self {
-        let home = MapConfig {
-            preprocess: PreprocessSection {
-                range_min: 0.1,
-                range_max: 10.0,
-                voxel_size: 0.05,
-                decimation: 1,
+        Self::from_core(
+            &profile.core_config(),
+            GpeSection {
+                deadline_us: DEFAULT_DEADLINE_US,
             },
-            icp: IcpSection {
-                max_iterations: 30,
-                max_correspondence: 0.5,
-                huber: 0.05,
-                min_points: 20,
-                turn_reseed_rms: 0.05,
-                stall_compensation: true,
-            },
-            keyframes: KeyframeSection {
-                distance: 0.2,
-                angle: 0.35,
-            },
-            submaps: SubmapSection {
-                resolution: 0.05,
-                side: 82,
-                new_submap_distance: 1.5,
-            },
-            loop_closure: LoopClosureSection {
-                search_window_xy: 1.5,
-                search_window_theta: 0.5,
-                min_score: 0.55,
-                max_candidates: 3,
-                // chi-square, 3 degrees of freedom, 99 %.
-                mahalanobis_gate: 11.34,
-            },
-            gpe: GpeSection { deadline_us: 5_000 },
-            backend: BackendSection {
-                optimize_every_keyframes: 50,
-                iterations: 20,
-                prune_cell_size: 0.5,
-            },
-            run: RunSection {
+            RunSection {
                 deterministic: false,
                 backend_delay_s: 0.0,
             },
-        };
-        // The larger profiles keep every rotated seed and leave a stalled odometry alone:
-        // both changes tip the office profile's mit-csail run into a wrong ICP minimum at one
-        // fast turn (README, "The mapper on the emulated Cortex-A9").
-        let office_icp = IcpSection {
-            turn_reseed_rms: 0.0,
-            stall_compensation: false,
-            ..home.icp
-        };
-        match profile {
-            Profile::Home => home,
-            Profile::Office => MapConfig {
-                preprocess: PreprocessSection {
-                    range_max: 40.0,
-                    ..home.preprocess
-                },
-                icp: office_icp,
-                submaps: SubmapSection {
-                    resolution: 0.05,
-                    side: 200,
-                    new_submap_distance: 3.0,
-                },
-                loop_closure: LoopClosureSection {
-                    search_window_xy: 2.5,
-                    search_window_theta: 0.6,
-                    ..home.loop_closure
-                },
-                ..home
+        )
+    }
+
+    /// The keys of a core configuration, with the host's own sections `gpe` and `run`.
+    pub fn from_core(c: &MapperConfig, gpe: GpeSection, run: RunSection) -> Self {
+        MapConfig {
+            preprocess: PreprocessSection {
+                range_min: c.min_range,
+                range_max: c.max_range,
+                voxel_size: c.preprocess.voxel_size,
+                decimation: c.preprocess.decimation,
             },
-            Profile::Airport => MapConfig {
-                preprocess: PreprocessSection {
-                    range_max: 40.0,
-                    voxel_size: 0.1,
-                    ..home.preprocess
-                },
-                icp: office_icp,
-                keyframes: KeyframeSection {
-                    distance: 0.5,
-                    angle: 0.35,
-                },
-                submaps: SubmapSection {
-                    resolution: 0.1,
-                    side: 100,
-                    new_submap_distance: 3.0,
-                },
-                loop_closure: LoopClosureSection {
-                    search_window_xy: 2.5,
-                    search_window_theta: 0.6,
-                    ..home.loop_closure
-                },
-                backend: BackendSection {
-                    prune_cell_size: 1.0,
-                    ..home.backend
-                },
-                ..home
+            icp: IcpSection {
+                max_iterations: c.icp.max_iterations,
+                max_correspondence: c.icp.max_correspondence,
+                huber: c.icp.huber,
+                min_points: c.icp.min_points,
+                turn_reseed_rms: c.turn_reseed_rms,
+                stall_compensation: c.stall_motion.is_some(),
             },
+            keyframes: KeyframeSection {
+                distance: c.keyframe.distance,
+                angle: c.keyframe.angle,
+            },
+            submaps: SubmapSection {
+                resolution: c.grid.resolution,
+                side: c.grid.side,
+                new_submap_distance: c.submap_length,
+            },
+            loop_closure: LoopClosureSection {
+                search_window_xy: c.loops.window_max,
+                search_window_theta: c.loops.angle_max,
+                min_score: c.loops.min_score,
+                max_candidates: c.loops.max_candidates,
+            },
+            gpe,
+            backend: BackendSection {
+                optimize_every_keyframes: c.backend.every_keyframes,
+                iterations: c.backend.max_iterations,
+                prune_cell_size: c.backend.prune_cell,
+            },
+            run,
         }
+    }
+
+    /// `base` (the profile's core configuration) with every key of this file written into
+    /// it; what the file has no key for keeps `base`'s value.
+    pub fn to_core(&self, base: &MapperConfig) -> MapperConfig {
+        let mut c = *base;
+        let p = &self.preprocess;
+        c.min_range = p.range_min;
+        c.max_range = p.range_max;
+        c.preprocess.voxel_size = p.voxel_size;
+        c.preprocess.decimation = p.decimation;
+        let i = &self.icp;
+        c.icp.max_iterations = i.max_iterations;
+        c.icp.max_correspondence = i.max_correspondence;
+        c.icp.huber = i.huber;
+        c.icp.min_points = i.min_points;
+        c.turn_reseed_rms = i.turn_reseed_rms;
+        c.stall_motion = i
+            .stall_compensation
+            .then(|| base.stall_motion.unwrap_or(MapperConfig::STALL_MOTION));
+        c.keyframe.distance = self.keyframes.distance;
+        c.keyframe.angle = self.keyframes.angle;
+        c.grid.resolution = self.submaps.resolution;
+        c.grid.side = self.submaps.side;
+        c.submap_length = self.submaps.new_submap_distance;
+        let l = &self.loop_closure;
+        c.loops.window_max = l.search_window_xy;
+        c.loops.angle_max = l.search_window_theta;
+        c.loops.min_score = l.min_score;
+        c.loops.max_candidates = l.max_candidates;
+        let b = &self.backend;
+        c.backend.every_keyframes = b.optimize_every_keyframes;
+        c.backend.max_iterations = b.iterations;
+        c.backend.prune_cell = b.prune_cell_size;
+        c
     }
 
     /// The preset of `profile` with the TOML text `text` merged onto it; `name` names the
@@ -289,31 +294,56 @@ impl MapConfig {
     /// Invalid TOML, a key the configuration does not have, a value of the wrong type, or
     /// values that fail [`MapConfig::validate`].
     pub fn from_toml(profile: Profile, text: &str, name: &str) -> Result<Self> {
-        let patch: toml::Table =
-            toml::from_str(text).with_context(|| format!("{name}: not valid TOML"))?;
-        let base = toml::Table::try_from(Self::preset(profile))
+        Self::from_patches(profile, &[(text.to_owned(), name.to_owned())])
+    }
+
+    /// The preset of `profile`, overridden by the file at `path` if given, then by each
+    /// `KEY=VALUE` of `sets` in order (a dotted TOML key and a TOML value, as in
+    /// `loop_closure.min_score=0.6`).
+    ///
+    /// # Errors
+    /// See [`MapConfig::from_toml`]; an unreadable file; a `--set` without `=`.
+    pub fn load(profile: Profile, path: Option<&Path>, sets: &[String]) -> Result<Self> {
+        let mut patches = Vec::new();
+        if let Some(p) = path {
+            let text =
+                std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
+            patches.push((text, p.display().to_string()));
+        }
+        for set in sets {
+            let Some((key, value)) = set.split_once('=') else {
+                bail!("--set {set}: expected KEY=VALUE, e.g. loop_closure.min_score=0.6");
+            };
+            patches.push((
+                format!("{} = {}", key.trim(), value.trim()),
+                format!("--set {set}"),
+            ));
+        }
+        Self::from_patches(profile, &patches)
+    }
+
+    /// The preset with each `(text, name)` TOML patch merged onto it in order, validated.
+    fn from_patches(profile: Profile, patches: &[(String, String)]) -> Result<Self> {
+        let mut merged = toml::Table::try_from(Self::preset(profile))
             .context("serialising the preset (a bug)")?;
-        let merged = merge(base, patch, "", name)?;
+        let mut names = Vec::new();
+        for (text, name) in patches {
+            let patch: toml::Table =
+                toml::from_str(text).with_context(|| format!("{name}: not valid TOML"))?;
+            merged = merge(merged, patch, "", name)?;
+            names.push(name.as_str());
+        }
+        let name = if names.is_empty() {
+            "the preset".to_owned()
+        } else {
+            names.join(", ")
+        };
         let cfg: MapConfig = toml::Value::Table(merged)
             .try_into()
             .with_context(|| format!("{name}: invalid configuration"))?;
-        cfg.validate().with_context(|| name.to_owned())?;
+        cfg.validate().with_context(|| name.clone())?;
+        check_core(&cfg.to_core(&profile.core_config())).with_context(|| name.clone())?;
         Ok(cfg)
-    }
-
-    /// The preset of `profile`, overridden by the file at `path` if given.
-    ///
-    /// # Errors
-    /// See [`MapConfig::from_toml`]; an unreadable file.
-    pub fn load(profile: Profile, path: Option<&Path>) -> Result<Self> {
-        match path {
-            None => Ok(Self::preset(profile)),
-            Some(p) => {
-                let text = std::fs::read_to_string(p)
-                    .with_context(|| format!("reading {}", p.display()))?;
-                Self::from_toml(profile, &text, &p.display().to_string())
-            }
-        }
     }
 
     /// The configuration as TOML (every field; e.g. to keep with a run's results).
@@ -369,9 +399,6 @@ impl MapConfig {
         if !(0.0..=1.0).contains(&l.min_score) {
             bail!("loop_closure.min_score must be in [0, 1]");
         }
-        if !positive(l.mahalanobis_gate) {
-            bail!("loop_closure.mahalanobis_gate must be positive");
-        }
         if !(self.run.backend_delay_s >= 0.0 && self.run.backend_delay_s.is_finite()) {
             bail!("run.backend_delay_s must be a finite number of seconds >= 0");
         }
@@ -386,6 +413,25 @@ impl MapConfig {
         }
         Ok(())
     }
+}
+
+/// Checks the limits a file's keys must keep against the core's own values: a loop search
+/// window cannot be narrower than the core's smallest one.
+fn check_core(c: &MapperConfig) -> Result<()> {
+    let l = &c.loops;
+    if l.window_max < l.window_min {
+        bail!(
+            "loop_closure.search_window_xy must be at least {} m (the smallest window)",
+            l.window_min
+        );
+    }
+    if l.angle_max < l.angle_min {
+        bail!(
+            "loop_closure.search_window_theta must be at least {} rad (the smallest window)",
+            l.angle_min
+        );
+    }
+    Ok(())
 }
 
 /// Merges `patch` onto `base` key by key; a key of `patch` missing in `base` is an error.
@@ -516,6 +562,99 @@ mod tests {
         assert!(format!("{err:#}").contains("min_score"));
         let err = MapConfig::from_toml(Profile::Home, "[icp\n", "my.toml").unwrap_err();
         assert!(format!("{err:#}").contains("my.toml: not valid TOML"));
+    }
+
+    const PROFILES: [Profile; 3] = [Profile::Home, Profile::Office, Profile::Airport];
+
+    #[test]
+    fn presets_are_the_core_configurations() {
+        // The firmware, which has no host, uses the core's presets directly and must map as
+        // `cloi map --profile P` does.
+        for p in PROFILES {
+            assert_eq!(
+                MapConfig::preset(p).to_core(&p.core_config()),
+                p.core_config(),
+                "{p:?}"
+            );
+        }
+    }
+
+    /// `value` moved to another valid value of its type.
+    fn changed(value: &toml::Value) -> toml::Value {
+        match value {
+            toml::Value::Boolean(b) => toml::Value::Boolean(!b),
+            toml::Value::Integer(i) => toml::Value::Integer(i + 1),
+            // Halfway towards zero stays inside every documented range ([0, 1] scores,
+            // windows at least the core's smallest, sizes below the submap).
+            toml::Value::Float(f) if *f > 1.0 => toml::Value::Float(f * 0.75),
+            toml::Value::Float(f) if *f > 0.0 => toml::Value::Float(f * 0.9),
+            toml::Value::Float(f) => toml::Value::Float(f + 0.5),
+            other => panic!("no test value for {other:?}"),
+        }
+    }
+
+    #[test]
+    fn every_key_changes_what_it_names_in_every_profile() {
+        for p in PROFILES {
+            let preset = MapConfig::preset(p);
+            let core = p.core_config();
+            let table = toml::Table::try_from(preset).unwrap();
+            let mut keys = 0;
+            for (section, fields) in &table {
+                for (key, value) in fields.as_table().expect("sections are tables") {
+                    let set = format!("{section}.{key}={}", changed(value));
+                    let cfg = MapConfig::load(p, None, std::slice::from_ref(&set))
+                        .unwrap_or_else(|e| panic!("{p:?} {set}: {e:#}"));
+                    assert_ne!(cfg, preset, "{p:?} {set} changed nothing");
+                    // The host's own sections time and schedule the run; every other key
+                    // must reach the core's configuration.
+                    if section != "gpe" && section != "run" {
+                        assert_ne!(
+                            cfg.to_core(&core),
+                            core,
+                            "{p:?} {set} does not reach the mapper"
+                        );
+                    }
+                    // And the file's view of the core agrees with the key.
+                    let back = MapConfig::from_core(&cfg.to_core(&core), cfg.gpe, cfg.run);
+                    assert_eq!(back, cfg, "{p:?} {set} does not round-trip");
+                    keys += 1;
+                }
+            }
+            assert!(keys >= 20, "{p:?}: only {keys} keys");
+        }
+    }
+
+    #[test]
+    fn set_overrides_the_file_and_names_itself_in_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("c.toml");
+        std::fs::write(&file, "[icp]\nhuber = 0.1\n").unwrap();
+        let sets = [
+            "icp.huber=0.2".to_owned(),
+            "run.deterministic = true".to_owned(),
+        ];
+        let cfg = MapConfig::load(Profile::Office, Some(&file), &sets).unwrap();
+        assert_eq!(cfg.icp.huber, 0.2);
+        assert!(cfg.run.deterministic);
+        let err = MapConfig::load(Profile::Office, None, &["icp.hubr=1".to_owned()]).unwrap_err();
+        let msg = format!("{err:#}");
+        assert!(
+            msg.contains("--set icp.hubr=1: unknown key `icp.hubr`"),
+            "{msg}"
+        );
+        let err = MapConfig::load(Profile::Office, None, &["icp.huber".to_owned()]).unwrap_err();
+        assert!(format!("{err:#}").contains("KEY=VALUE"));
+    }
+
+    #[test]
+    fn loop_windows_below_the_cores_smallest_are_refused() {
+        for key in ["search_window_xy", "search_window_theta"] {
+            let set = format!("loop_closure.{key}=0");
+            let err = MapConfig::load(Profile::Office, None, &[set]).unwrap_err();
+            let msg = format!("{err:#}");
+            assert!(msg.contains(key) && msg.contains("at least"), "{msg}");
+        }
     }
 
     #[test]

@@ -18,7 +18,7 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
-use cloi_core::frontend::{BeamGeometry, GridParams, IcpConfig, KeyframeConfig};
+use cloi_core::frontend::{BeamGeometry, GridParams};
 use cloi_core::geom::Se2;
 use cloi_core::graph::EdgeKind;
 use cloi_core::mapper::{
@@ -80,58 +80,6 @@ pub struct MapRun {
     pub gpe: Vec<(i64, Se2)>,
     /// The mapper's counters.
     pub stats: MapperStats,
-}
-
-/// The core configuration for a profile and a host configuration.
-pub fn mapper_config(profile: Profile, c: &MapConfig) -> MapperConfig {
-    let base = match profile {
-        Profile::Home => MapperConfig::home(),
-        Profile::Office | Profile::Airport => MapperConfig::default(),
-    };
-    MapperConfig {
-        preprocess: cloi_core::frontend::PreprocessConfig {
-            voxel_size: c.preprocess.voxel_size,
-            decimation: c.preprocess.decimation,
-            ..base.preprocess
-        },
-        max_range: c.preprocess.range_max,
-        min_range: c.preprocess.range_min,
-        icp: IcpConfig {
-            max_iterations: c.icp.max_iterations,
-            max_correspondence: c.icp.max_correspondence,
-            huber: c.icp.huber,
-            min_points: c.icp.min_points,
-            ..base.icp
-        },
-        turn_reseed_rms: c.icp.turn_reseed_rms,
-        stall_motion: c
-            .icp
-            .stall_compensation
-            .then_some(MapperConfig::STALL_MOTION),
-        keyframe: KeyframeConfig {
-            distance: c.keyframes.distance,
-            angle: c.keyframes.angle,
-        },
-        grid: GridParams {
-            side: c.submaps.side,
-            resolution: c.submaps.resolution,
-            ..base.grid
-        },
-        submap_length: c.submaps.new_submap_distance,
-        loops: cloi_core::mapper::LoopConfig {
-            window_max: c.loop_closure.search_window_xy,
-            angle_max: c.loop_closure.search_window_theta,
-            min_score: c.loop_closure.min_score,
-            max_candidates: c.loop_closure.max_candidates.min(u8::MAX as u16) as u8,
-            ..base.loops
-        },
-        backend: cloi_core::mapper::BackendConfig {
-            every_keyframes: c.backend.optimize_every_keyframes,
-            max_iterations: c.backend.iterations,
-            ..base.backend
-        },
-        ..base
-    }
 }
 
 /// Boxed, empty resources of `profile`. They are built on a thread with a stack large enough
@@ -262,7 +210,7 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
     settings.config.validate()?;
     std::fs::create_dir_all(&settings.out)
         .with_context(|| format!("creating {}", settings.out.display()))?;
-    let cfg = mapper_config(settings.profile, &settings.config);
+    let cfg = settings.config.to_core(&settings.profile.core_config());
     let progress = MapProgress::with_visibility(input.size(), settings.progress);
     let stats_handle = input.stats_handle();
     let wall = Instant::now();
@@ -625,22 +573,5 @@ pub fn default_out(input: Option<&Path>) -> PathBuf {
     match input.and_then(|p| p.file_stem()) {
         Some(stem) => PathBuf::from("out").join(stem),
         None => PathBuf::from("out").join("sim-home"),
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The host presets are the core's configurations: the firmware, which has no host, uses
-    /// `MapperConfig::home()` and must map exactly as `cloi map --profile home`.
-    #[test]
-    fn presets_are_the_core_configurations() {
-        for (p, core) in [
-            (Profile::Home, MapperConfig::home()),
-            (Profile::Office, MapperConfig::default()),
-        ] {
-            assert_eq!(mapper_config(p, &MapConfig::preset(p)), core, "{p:?}");
-        }
     }
 }
