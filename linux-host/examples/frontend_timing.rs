@@ -3,47 +3,54 @@
 //! the odometry against the GMapping reference poses over consecutive reference pairs.
 //!
 //! `cargo run --release -p cloi-host --example frontend_timing -- [LOG.clf] [MAX_SCANS]`
-//! (default `../shared/data/carmen/intel.clf`, 3,000 scans; `SUBMAP=home` for 4.1 m submaps). A minimal FLASER reader is
-//! included so the example does not depend on the host's IO layer.
+//! (default `../shared/data/carmen/intel.clf`, 3,000 scans; `SUBMAP=home` for 4.1 m
+//! submaps). Scans come through the host's CARMEN reader, as for `cloi map`.
 
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use cloi_core::frontend::csm::{search, CsmConfig, Pyramid};
 use cloi_core::frontend::{
     align, preprocess, BeamGeometry, GridParams, IcpConfig, KeyframeConfig, KeyframeSelector,
     PointMap, PreprocessConfig, ScanPoints, Submap,
 };
 use cloi_core::Se2;
+use cloi_host::io::carmen::{CarmenReader, CarmenRecord, LaserSource};
 
 struct Scan {
     ranges: Vec<f32>,
     odom: Se2,
 }
 
-fn read_flaser(path: &std::path::Path, max: usize) -> Result<Vec<Scan>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {path:?}"))?;
+/// The first `max` front-laser scans of a CARMEN log that carry odometry, read by the host's
+/// CARMEN reader, and their beam geometry.
+fn read_front_scans(path: &std::path::Path, max: usize) -> Result<(Vec<Scan>, BeamGeometry)> {
     let mut scans = Vec::new();
-    for (no, line) in text.lines().enumerate() {
-        let mut f = line.split_ascii_whitespace();
-        if f.next() != Some("FLASER") {
+    let mut geometry = None;
+    for rec in CarmenReader::open(path, false)? {
+        let CarmenRecord::Laser(l) = rec? else {
             continue;
-        }
-        let n: usize = f.next().context("beam count")?.parse()?;
-        let nums: Vec<f64> = f.take(n + 3).map(|s| s.parse()).collect::<Result<_, _>>()?;
-        if nums.len() != n + 3 {
-            bail!("line {}: short FLASER", no + 1);
-        }
+        };
+        let (LaserSource::Front, Some((x, y, theta))) = (l.source, l.odom_pose) else {
+            continue;
+        };
+        geometry.get_or_insert(BeamGeometry {
+            angle_min: l.angle_min,
+            angle_increment: l.angle_increment,
+            range_min: 0.05,
+            range_max: 40.0,
+        });
         scans.push(Scan {
-            ranges: nums[..n].iter().map(|&r| r as f32).collect(),
-            odom: Se2::new(nums[n], nums[n + 1], nums[n + 2]),
+            ranges: l.ranges,
+            odom: Se2::new(x, y, theta),
         });
         if scans.len() == max {
             break;
         }
     }
-    Ok(scans)
+    let geometry = geometry.with_context(|| format!("{}: no FLASER line", path.display()))?;
+    Ok((scans, geometry))
 }
 
 fn stats(name: &str, mut t: Vec<Duration>) {
@@ -69,20 +76,8 @@ fn main() -> Result<()> {
         None => cloi_host::dataset::shared_file("carmen/intel.clf").context("intel.clf")?,
     };
     let max: usize = args.get(2).map_or(Ok(3000), |s| s.parse())?;
-    let scans = read_flaser(&path, max)?;
+    let (scans, geometry) = read_front_scans(&path, max)?;
     let beams = scans.first().map_or(0, |s| s.ranges.len());
-    let fov = if beams % 2 == 1 {
-        (beams - 1) as f32
-    } else {
-        beams as f32
-    };
-    let step = core::f32::consts::PI / fov;
-    let geometry = BeamGeometry {
-        angle_min: -core::f32::consts::FRAC_PI_2,
-        angle_increment: step,
-        range_min: 0.05,
-        range_max: 40.0,
-    };
     let pre = PreprocessConfig {
         voxel_size: 0.05,
         ..PreprocessConfig::default()
