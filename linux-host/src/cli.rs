@@ -12,6 +12,33 @@ pub struct Cli {
     /// What to do.
     #[command(subcommand)]
     pub command: Command,
+    /// Only errors on stderr, and no progress bar.
+    #[arg(short, long, global = true)]
+    pub quiet: bool,
+    /// More messages on stderr: `-v` adds progress notes, `-vv` debugging ones (`RUST_LOG`
+    /// overrides both).
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    pub verbose: u8,
+}
+
+impl Cli {
+    /// Installs the logger that takes the host's and the core's messages to stderr: warnings
+    /// and errors by default, errors only with `--quiet`, more with `-v`.
+    pub fn init_logging(&self) {
+        let level = match (self.quiet, self.verbose) {
+            (true, _) => log::LevelFilter::Error,
+            (false, 0) => log::LevelFilter::Warn,
+            (false, 1) => log::LevelFilter::Info,
+            (false, _) => log::LevelFilter::Debug,
+        };
+        let mut builder = env_logger::Builder::new();
+        builder.filter_level(level).format_timestamp(None);
+        if let Ok(spec) = std::env::var("RUST_LOG") {
+            builder.parse_filters(&spec);
+        }
+        // A second call (tests running the command in process) keeps the first logger.
+        let _ = builder.try_init();
+    }
 }
 
 /// The subcommands.
@@ -52,6 +79,6 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Convert(args) => crate::io::cli::run(&args, out),
         Command::Eval(cmd) => crate::eval::cli::run(&cmd, out),
         Command::Sim(args) => crate::sim::command::run(&args, out),
-        Command::Map(args) => crate::map::command::run_command(&args, out),
+        Command::Map(args) => crate::map::command::run_command(&args, cli.quiet, out),
     }
 }

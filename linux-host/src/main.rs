@@ -9,6 +9,7 @@ static HEAP: cloi_host::map::output::CountingAlloc = cloi_host::map::output::Cou
 
 fn main() -> ExitCode {
     let cli = cloi_host::cli::Cli::parse();
+    cli.init_logging();
     let stdout = std::io::stdout();
     let mut out = stdout.lock();
     match cloi_host::cli::run(cli, &mut out) {

@@ -65,7 +65,7 @@ impl Pose3 {
 
     /// Rotation angle (rad) of the (re-orthonormalized) rotation.
     pub fn rotation_angle(&self) -> f64 {
-        UnitQuaternion::from_matrix(&self.r).angle()
+        crate::io::tum::rotation_from_matrix(&self.r).angle()
     }
 }
 

@@ -10,8 +10,11 @@
 //!   `sensor_msgs/msg/Imu`, `sensor_msgs/msg/Image`, `sensor_msgs/msg/CompressedImage`,
 //!   `tf2_msgs/msg/TFMessage`, `geometry_msgs/msg/PoseWithCovarianceStamped`); a
 //!   [`TopicSelection`] override keeps only the named topic for its type.
-//! * A damaged or truncated file yields the messages before the damage and a warning with the
-//!   byte offset, or an error in strict mode. Messages that do not decode are counted and
+//! * Nothing read from the file sizes memory unchecked: a record, a chunk and a chunk's
+//!   decompressed content longer than [`MAX_RECORD_BYTES`] are damage, and chunk CRCs are
+//!   checked before any message of the chunk is used (a flipped bit is damage, not data).
+//! * A damaged or truncated file yields the messages of the complete chunks before the damage
+//!   and a warning with the byte offset, or an error in strict mode. Messages that do not decode are counted and
 //!   skipped (an error in strict mode). ROS 1 messages (`ros1` encoding) are counted and
 //!   skipped: the project reads ROS 2 bags only.
 
@@ -27,6 +30,11 @@ use super::ros2::{
     CompressedImage, Image, Imu, LaserScan, Odometry, PoseWithCovarianceStamped, RosMessage,
     TfMessage,
 };
+
+/// Longest record, chunk or decompressed chunk accepted, bytes: far above what a recorder
+/// writes (rosbag2 closes chunks near 768 KiB; one 1080p colour image is 6 MiB), far below
+/// what would exhaust the host's memory ceiling.
+pub const MAX_RECORD_BYTES: usize = 32 << 20;
 
 /// A decoded message of a type the mapper uses.
 #[derive(Debug, Clone, PartialEq)]
@@ -367,7 +375,12 @@ impl BagReader {
     /// Reads a bag from any reader; `path` names it in messages.
     pub fn from_reader(input: Box<dyn Read>, path: &Path, options: BagReadOptions) -> Self {
         Self {
-            linear: mcap::sans_io::LinearReader::new(),
+            linear: mcap::sans_io::LinearReader::new_with_options(
+                mcap::sans_io::LinearReaderOptions::default()
+                    .with_prevalidate_chunk_crcs(true)
+                    .with_validate_data_section_crc(true)
+                    .with_record_length_limit(MAX_RECORD_BYTES),
+            ),
             source: input,
             bytes: 0,
             decoder: Decoder {
@@ -672,7 +685,9 @@ mod tests {
     fn truncated_bag_keeps_earlier_messages() {
         let times: Vec<i64> = (0..200).map(|i| i * 10_000_000).collect();
         let full = bag_bytes(&times, BagCompression::None);
-        let cut = full[..full.len() / 2].to_vec();
+        // Past the first chunk (1 MiB) and into the second: the complete chunk's messages
+        // are kept, none of the cut one's.
+        let cut = full[..full.len() * 4 / 5].to_vec();
         let (msgs, stats) = read(cut.clone(), BagReadOptions::default());
         assert!(stats.truncated);
         assert!(!msgs.is_empty() && msgs.len() < 400);
@@ -707,5 +722,40 @@ mod tests {
         };
         let (msgs, _) = read(bytes, strict);
         assert!(msgs[0].is_err());
+    }
+
+    #[test]
+    fn a_flipped_bit_in_a_chunk_is_damage_not_data() {
+        let times: Vec<i64> = (0..50).map(|i| i * 10_000_000).collect();
+        for compression in [BagCompression::None, BagCompression::Zstd] {
+            let mut bytes = bag_bytes(&times, compression);
+            let at = bytes.len() / 3;
+            bytes[at] ^= 0x10;
+            let (msgs, stats) = read(bytes.clone(), BagReadOptions::default());
+            assert!(stats.truncated, "{compression:?}: the flip went unnoticed");
+            assert!(msgs.iter().all(|m| m.is_ok()));
+            assert!(msgs.len() < 2 * times.len(), "{compression:?}");
+            assert!(stats.warnings.iter().any(|w| w.contains("damaged")));
+            let strict = BagReadOptions {
+                strict: true,
+                ..Default::default()
+            };
+            let (msgs, _) = read(bytes, strict);
+            assert!(msgs.last().is_some_and(|m| m.is_err()), "{compression:?}");
+        }
+    }
+
+    #[test]
+    fn a_huge_record_length_is_damage_not_an_allocation() {
+        let times: Vec<i64> = (0..5).map(|i| i * 10_000_000).collect();
+        let good = bag_bytes(&times, BagCompression::None);
+        // The first record after the 8-byte magic: opcode, then its u64 length.
+        for len in [u64::MAX / 2, (MAX_RECORD_BYTES as u64) + 1, 0x7FFF_FFFF] {
+            let mut bytes = good.clone();
+            bytes[9..17].copy_from_slice(&len.to_le_bytes());
+            let (msgs, stats) = read(bytes, BagReadOptions::default());
+            assert!(stats.truncated, "length {len:#x}");
+            assert!(msgs.is_empty());
+        }
     }
 }

@@ -102,15 +102,26 @@ impl GridRef<'_> {
     }
 }
 
+/// `v` in the fewest digits that read back to it: a value that came from single precision
+/// (the core's grids are f32) is written as that f32 (`0.05`, not `0.05000000074505806`).
+fn shortest(v: f64) -> String {
+    let single = v as f32;
+    if f64::from(single) == v {
+        single.to_string()
+    } else {
+        v.to_string()
+    }
+}
+
 /// The `map.yaml` text for a picture file name.
 pub fn map_yaml(image_file: &str, grid: &GridRef<'_>, thresholds: MapThresholds) -> String {
     format!(
         "image: {image_file}\nmode: trinary\nresolution: {}\norigin: [{}, {}, {}]\nnegate: 0\n\
          occupied_thresh: {}\nfree_thresh: {}\n",
-        grid.resolution,
-        grid.origin.0,
-        grid.origin.1,
-        grid.origin.2,
+        shortest(grid.resolution),
+        shortest(grid.origin.0),
+        shortest(grid.origin.1),
+        shortest(grid.origin.2),
         thresholds.occupied,
         thresholds.free
     )
@@ -278,6 +289,12 @@ mod tests {
         assert!(yaml.contains("origin: [-1, -0.5, 0]\n"));
         assert!(yaml.contains("negate: 0\n"));
         assert!(yaml.contains("occupied_thresh: 0.65\nfree_thresh: 0.196\n"));
+        let single = GridRef {
+            resolution: f64::from(0.05f32),
+            ..grid(&cells)
+        };
+        let yaml = map_yaml("m.pgm", &single, MapThresholds::default());
+        assert!(yaml.contains("resolution: 0.05\n"), "{yaml}");
         assert!(write_map_server(dir.path(), "bad", &grid(&[0, 0])).is_err());
     }
 

@@ -59,13 +59,46 @@ pub fn read_tum(path: &Path) -> Result<Vec<StampedPose>> {
                 v.len()
             );
         };
+        check_values(&v, MAX_COORDINATE)
+            .with_context(|| format!("{}:{}", path.display(), i + 1))?;
+        let q = Quaternion::new(qw, qx, qy, qz);
+        if q.norm() < 1e-9 {
+            bail!(
+                "{}:{}: the quaternion is zero, not a rotation",
+                path.display(),
+                i + 1
+            );
+        }
         out.push(StampedPose {
             t,
             p: Vector3::new(x, y, z),
-            q: UnitQuaternion::from_quaternion(Quaternion::new(qw, qx, qy, qz)),
+            q: UnitQuaternion::from_quaternion(q),
         });
     }
     Ok(out)
+}
+
+/// Largest coordinate or time stamp accepted, in the file's units: beyond it a value is
+/// corrupt (a planet-sized map) and would only turn sums and decompositions into infinities.
+pub const MAX_COORDINATE: f64 = 1e9;
+
+/// Checks that every value is finite and at most `max` in magnitude.
+fn check_values(values: &[f64], max: f64) -> Result<()> {
+    for (k, v) in values.iter().enumerate() {
+        if !v.is_finite() || v.abs() > max {
+            bail!(
+                "value {} is {v}: numbers must be finite and within +-{max}",
+                k + 1
+            );
+        }
+    }
+    Ok(())
+}
+
+/// The rotation nearest to `r`, by a bounded number of refinement steps (nalgebra's default
+/// iterates until convergence, which a matrix of NaN never reaches).
+pub fn rotation_from_matrix(r: &Matrix3<f64>) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_matrix_eps(r, f64::EPSILON, 1_000, UnitQuaternion::identity())
 }
 
 /// Reads the rows of a KITTI trajectory file: the 12 numbers of each line's 3x4 matrix, row
@@ -89,6 +122,12 @@ pub fn read_kitti_rows(path: &Path) -> Result<Vec<[f64; 12]>> {
         let row: [f64; 12] = v[..]
             .try_into()
             .map_err(|_| anyhow::anyhow!("{}:{}: expected 12 numbers", path.display(), i + 1))?;
+        check_values(&row, MAX_COORDINATE)
+            .with_context(|| format!("{}:{}", path.display(), i + 1))?;
+        // Entries of a rotation matrix lie in [-1, 1]; a little more is rounding.
+        let rotation = [0, 1, 2, 4, 5, 6, 8, 9, 10].map(|k| row[k]);
+        check_values(&rotation, 1.5)
+            .with_context(|| format!("{}:{}: not a rotation matrix", path.display(), i + 1))?;
         out.push(row);
     }
     Ok(out)
@@ -125,7 +164,7 @@ pub fn read_kitti(path: &Path, times: Option<&Path>) -> Result<Vec<StampedPose>>
         out.push(StampedPose {
             t,
             p: Vector3::new(v[3], v[7], v[11]),
-            q: UnitQuaternion::from_matrix(&r),
+            q: rotation_from_matrix(&r),
         });
     }
     Ok(out)
@@ -188,5 +227,38 @@ mod tests {
         assert_eq!(poses[1].t, 1.0);
         assert_eq!(poses[1].p, Vector3::new(4.0, 5.0, 6.0));
         assert!((poses[1].q.euler_angles().2 - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+    }
+
+    #[test]
+    fn non_finite_huge_and_zero_rotations_are_refused_with_their_line() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("bad.tum");
+        for (row, why) in [
+            ("0 0 0 0 nan 0 0 1", "finite"),
+            ("0 0 0 0 0 0 0 inf", "finite"),
+            ("0 1e308 0 0 0 0 0 1", "within"),
+            ("0 0 0 0 0 0 0 0", "zero"),
+        ] {
+            std::fs::write(&path, format!("1 0 0 0 0 0 0 1\n{row}\n")).unwrap();
+            let err = format!("{:#}", read_tum(&path).unwrap_err());
+            assert!(
+                err.contains("bad.tum:2") && err.contains(why),
+                "{row}: {err}"
+            );
+        }
+        let path = dir.path().join("bad.kitti");
+        for row in ["nan 0 0 1 0 1 0 2 0 0 1 3", "1e30 0 0 1 0 1 0 2 0 0 1 3"] {
+            std::fs::write(&path, format!("{row}\n")).unwrap();
+            let err = format!("{:#}", read_kitti(&path, None).unwrap_err());
+            assert!(err.contains("bad.kitti:1"), "{row}: {err}");
+        }
+    }
+
+    #[test]
+    fn the_rotation_of_a_matrix_of_nan_ends() {
+        let q = rotation_from_matrix(&Matrix3::from_element(f64::NAN));
+        assert!(q.angle().is_nan() || q.angle().is_finite());
+        let r = rotation_from_matrix(&Matrix3::identity());
+        assert!(r.angle().abs() < 1e-12);
     }
 }

@@ -8,6 +8,7 @@ use clap::Args;
 
 use super::config::{MapConfig, Profile};
 use super::input::InputArgs;
+use super::output::MapReport;
 use super::run::{default_out, run, MapSettings, StampPolicy};
 
 /// Arguments of `cloi map`.
@@ -51,16 +52,18 @@ pub struct MapArgs {
     /// How the input is read (laser, mounting, topics, simulator).
     #[command(flatten)]
     pub input_args: InputArgs,
-    /// No progress bar.
+    /// Also print the JSON report (written to `report.json` in any case) on stdout, alone,
+    /// for piping into other tools; the human summary goes to stderr.
     #[arg(long)]
-    pub quiet: bool,
+    pub json: bool,
 }
 
-/// Runs `cloi map`, printing the report to `out`.
+/// Runs `cloi map`: the JSON report to `out` with `--json`, warnings and a summary to
+/// stderr; `quiet` drops the progress bar and the summary.
 ///
 /// # Errors
 /// Unreadable input or configuration, or outputs that cannot be written.
-pub fn run_command(args: &MapArgs, out: &mut dyn Write) -> Result<()> {
+pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
     let profile = args.profile.unwrap_or(if args.input.is_some() {
         Profile::Office
     } else {
@@ -84,14 +87,30 @@ pub fn run_command(args: &MapArgs, out: &mut dyn Write) -> Result<()> {
         backend_iterations_per_scan: args.backend_iterations,
         max_scans: args.max_scans,
         stamps: args.stamps,
-        progress: !args.quiet,
+        progress: !quiet,
     };
     let result = run(input, &settings)?;
-    writeln!(out, "{}", serde_json::to_string_pretty(&result.report)?)?;
-    writeln!(
-        out,
-        "wrote map.pgm, map.yaml, map.png, trajectory.tum, gpe.tum, graph.g2o, report.json to {}",
-        settings.out.display()
-    )?;
+    if args.json {
+        writeln!(out, "{}", serde_json::to_string_pretty(&result.report)?)?;
+    }
+    if !quiet {
+        eprintln!("{}", summary(&result.report, &settings.out));
+    }
     Ok(())
+}
+
+/// One human line about a finished run, from its report.
+fn summary(r: &MapReport, out: &std::path::Path) -> String {
+    format!(
+        "mapped {} scans ({} rejected) into {} keyframes with {} loop closures: {:.0} s of data \
+         in {:.1} s; wrote map.pgm, map.yaml, map.png, trajectory.tum, gpe.tum, graph.g2o, \
+         report.json to {}",
+        r.scans,
+        r.scans_rejected,
+        r.keyframes,
+        r.loop_closures,
+        r.data_seconds,
+        r.wall_seconds,
+        out.display()
+    )
 }

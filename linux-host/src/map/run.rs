@@ -326,6 +326,9 @@ fn drive(
                     }
                 }
             });
+            // However the feeding below ends, a panic included, the back-end thread must
+            // stop too: the scope waits for it before the panic can reach the user.
+            let _stop_backend = StopOnDrop(&done);
             let mut result = Ok(());
             for ev in input {
                 let ev = match ev {
@@ -566,6 +569,15 @@ fn stats_json(s: &MapperStats) -> serde_json::Value {
         "prunes": s.prunes,
         "nodes_pruned": s.nodes_pruned,
     })
+}
+
+/// Raises its flag when dropped, also while a panic unwinds.
+struct StopOnDrop<'a>(&'a std::sync::atomic::AtomicBool);
+
+impl Drop for StopOnDrop<'_> {
+    fn drop(&mut self) {
+        self.0.store(true, std::sync::atomic::Ordering::Release);
+    }
 }
 
 /// The directory name used when `--out` is not given.
