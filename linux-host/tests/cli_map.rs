@@ -241,3 +241,40 @@ fn unreadable_input_is_an_error_with_its_name() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("/no/such/file.clf"));
 }
+
+#[test]
+fn json_goes_to_stdout_alone_and_the_summary_to_stderr() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("out");
+    let out = cloi(&[
+        "map",
+        "--deterministic",
+        "--json",
+        "--sim-duration",
+        "5",
+        "--out",
+        dir.to_str().expect("utf-8"),
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    let printed: serde_json::Value =
+        serde_json::from_slice(&out.stdout).expect("stdout is one JSON document");
+    assert_eq!(printed["scans"], report(&dir)["scans"]);
+    assert!(
+        stderr.contains("mapped ") && stderr.contains("report.json"),
+        "{stderr}"
+    );
+    // Quiet: nothing on stdout without --json, no summary on stderr.
+    let out = cloi(&[
+        "map",
+        "-q",
+        "--deterministic",
+        "--sim-duration",
+        "5",
+        "--out",
+        dir.to_str().expect("utf-8"),
+    ]);
+    assert!(out.status.success());
+    assert!(out.stdout.is_empty());
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("mapped "));
+}

@@ -123,9 +123,6 @@ pub fn run(args: &ConvertArgs, out: &mut dyn Write) -> Result<()> {
                 args.range_max,
                 args.max_scans,
             )?;
-            for w in &r.input.warnings {
-                eprintln!("warning: {w}");
-            }
             json!({
                 "input": args.input,
                 "output": output,
@@ -142,9 +139,6 @@ pub fn run(args: &ConvertArgs, out: &mut dyn Write) -> Result<()> {
         }
         ("clf" | "log", "mcap") => {
             let r = carmen_to_bag(&args.input, output, args.strict, args.range_max)?;
-            for w in &r.input.warnings {
-                eprintln!("warning: {w}");
-            }
             json!({
                 "input": args.input,
                 "output": output,
@@ -234,12 +228,9 @@ fn bag_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
         }
     }
     let stats = reader.stats().clone();
-    for w in &stats.warnings {
-        eprintln!("warning: {w}");
-    }
     if odom_topics.len() > 1 {
-        eprintln!(
-            "warning: odometry from several topics {odom_topics:?} is mixed; pick one with --odom-topic"
+        log::warn!(
+            "odometry from several topics {odom_topics:?} is mixed; pick one with --odom-topic"
         );
     }
     write_tum(args.output_path(), &poses)?;
@@ -281,9 +272,6 @@ fn carmen_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
                 poses.push(StampedPose::planar(o.header.stamp.as_secs_f64(), x, y, th));
             }
         }
-    }
-    for w in &reader.stats().warnings {
-        eprintln!("warning: {w}");
     }
     write_tum(args.output_path(), &poses)?;
     Ok(json!({
