@@ -29,8 +29,7 @@ pub trait RosMessage: Serialize + DeserializeOwned {
     /// # Errors
     /// Only if the serializer fails, which the types of this module never make it do.
     fn to_cdr(&self) -> Result<Vec<u8>> {
-        cdr::serialize::<_, _, cdr::CdrLe>(self, cdr::Infinite)
-            .with_context(|| format!("encoding {} as CDR", Self::TYPE_NAME))
+        to_cdr_le(self).with_context(|| format!("encoding {} as CDR", Self::TYPE_NAME))
     }
 
     /// Decodes a CDR message (either byte order, with the encapsulation header).
@@ -38,8 +37,31 @@ pub trait RosMessage: Serialize + DeserializeOwned {
     /// # Errors
     /// Truncated or malformed data.
     fn from_cdr(data: &[u8]) -> Result<Self> {
-        cdr::deserialize(data).with_context(|| format!("decoding {} from CDR", Self::TYPE_NAME))
+        let decoded = match data {
+            [_, 0x00, _, _, body @ ..] => {
+                cdr_encoding::from_bytes::<Self, byteorder::BigEndian>(body)
+            }
+            [_, 0x01, _, _, body @ ..] => {
+                cdr_encoding::from_bytes::<Self, byteorder::LittleEndian>(body)
+            }
+            _ => anyhow::bail!(
+                "decoding {}: not plain CDR (encapsulation {:02x?})",
+                Self::TYPE_NAME,
+                data.get(..4).unwrap_or(data)
+            ),
+        };
+        let (message, _) =
+            decoded.with_context(|| format!("decoding {} from CDR", Self::TYPE_NAME))?;
+        Ok(message)
     }
+}
+
+/// `value` as plain CDR, little endian, after the encapsulation header `00 01 00 00`
+/// (alignment counts from the end of the header).
+fn to_cdr_le<T: Serialize>(value: &T) -> Result<Vec<u8>> {
+    let mut out = vec![0x00, 0x01, 0x00, 0x00];
+    cdr_encoding::to_writer::<_, byteorder::LittleEndian, _>(&mut out, value)?;
+    Ok(out)
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -635,7 +657,7 @@ mod tests {
         // Known layout: encapsulation (00 01 00 00), sec, nanosec, string length incl. NUL,
         // bytes, NUL.
         let h = Header::new(Time { sec: 1, nanosec: 2 }, "map");
-        let bytes = cdr::serialize::<_, _, cdr::CdrLe>(&h, cdr::Infinite).unwrap();
+        let bytes = to_cdr_le(&h).unwrap();
         assert_eq!(
             bytes,
             [0, 1, 0, 0, 1, 0, 0, 0, 2, 0, 0, 0, 4, 0, 0, 0, b'm', b'a', b'p', 0]
@@ -776,5 +798,22 @@ mod tests {
         }
         assert_eq!(TfMessage::schema_text().matches("MSG: ").count(), 6);
         assert!(schema_text("unknown_msgs/msg/X").is_empty());
+    }
+
+    #[test]
+    fn a_string_length_beyond_the_message_is_an_error_not_an_allocation() {
+        let scan = LaserScan {
+            header: Header::new(Time { sec: 1, nanosec: 2 }, "laser"),
+            ranges: vec![1.0; 8],
+            ..Default::default()
+        };
+        let mut bytes = scan.to_cdr().unwrap();
+        assert_eq!(LaserScan::from_cdr(&bytes).unwrap(), scan);
+        // The frame id's length sits after the encapsulation, sec and nanosec.
+        bytes[12..16].copy_from_slice(&0x7FFF_FFFFu32.to_le_bytes());
+        assert!(LaserScan::from_cdr(&bytes).is_err());
+        let big_endian = [0u8, 0x00, 0, 0, 0, 0, 0, 1];
+        assert!(LaserScan::from_cdr(&big_endian).is_err());
+        assert!(LaserScan::from_cdr(&[0, 7, 0, 0]).is_err());
     }
 }
