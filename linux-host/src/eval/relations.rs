@@ -43,9 +43,14 @@ fn numbers<'a>(
     fields: impl Iterator<Item = &'a str>,
 ) -> Result<Vec<f64>> {
     fields
-        .map(|f| {
-            f.parse::<f64>()
-                .with_context(|| format!("{}:{line_no}: {f:?} is not a number", path.display()))
+        .map(|f| match f.parse::<f64>() {
+            Ok(v) if v.is_finite() && v.abs() <= crate::io::tum::MAX_COORDINATE => Ok(v),
+            Ok(v) => bail!(
+                "{}:{line_no}: {v} is not a usable number (finite, within +-{:e})",
+                path.display(),
+                crate::io::tum::MAX_COORDINATE
+            ),
+            Err(_) => bail!("{}:{line_no}: {f:?} is not a number", path.display()),
         })
         .collect()
 }
@@ -299,6 +304,20 @@ mod tests {
         let rels = load_relations(&rel).unwrap();
         assert!(score(&traj, &rels, 0.0).is_err());
         assert_eq!(score(&traj, &rels, 1e-5).unwrap().pairs_used, 1);
+    }
+
+    #[test]
+    fn nan_inf_and_huge_numbers_are_refused_with_their_line() {
+        let dir = tempfile::tempdir().unwrap();
+        for bad in ["nan", "inf", "1e300"] {
+            let rel = write(
+                dir.path(),
+                "bad.relations",
+                &format!("1 2 1 0 0\n1 2 {bad} 0 0\n"),
+            );
+            let err = format!("{:#}", load_relations(&rel).unwrap_err());
+            assert!(err.contains("bad.relations:2"), "{bad}: {err}");
+        }
     }
 
     #[test]

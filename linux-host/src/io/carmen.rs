@@ -417,8 +417,27 @@ impl<'a> Fields<'a> {
         let ns = parse_stamp_ns(s)
             .ok_or_else(|| format!("field {} (timestamp) is not a time: {s:?}", self.index))?;
         self.next_str("host")?;
-        self.next_str("logger timestamp")?;
+        let s = self.next_str("logger timestamp")?;
+        if parse_stamp_ns(s).is_none() {
+            return Err(format!(
+                "field {} (logger timestamp) is not a time: {s:?}",
+                self.index
+            ));
+        }
         Ok(ns)
+    }
+
+    /// Checks that the line ends here: a field more means the counts before it were wrong
+    /// and every field after the beams was read from the wrong place.
+    fn end(&mut self) -> std::result::Result<(), String> {
+        let extra = self.iter.clone().count();
+        if extra > 0 {
+            return Err(format!(
+                "{extra} field(s) after the last one (field {}); the line is damaged",
+                self.index
+            ));
+        }
+        Ok(())
     }
 }
 
@@ -525,6 +544,9 @@ fn parse_line(text: &str) -> std::result::Result<Parsed, String> {
         other if other.starts_with("NMEA") => return Ok(Parsed::Skipped(other.to_owned())),
         other => return Ok(Parsed::Unknown(other.to_owned())),
     };
+    if !matches!(record, CarmenRecord::Param { .. }) {
+        f.end()?;
+    }
     Ok(Parsed::Record(record))
 }
 
@@ -618,6 +640,32 @@ ROBOTLASER1 0 -1.5 3.1416 0.0175 81.9 0.01 0 2 1.5 2.5 2 7 8 0.1 0.2 0.3 0.4 0.5
         assert!((inc - 1f32.to_radians()).abs() < 1e-6);
         let (_, inc) = old_laser_angles(361);
         assert!((inc - 0.5f32.to_radians()).abs() < 1e-6);
+    }
+
+    #[test]
+    fn a_beam_too_many_or_too_few_is_damage_not_a_shifted_stamp() {
+        // Three beams announced; the good line, one with a beam missing, one with a beam more.
+        let good = "FLASER 3 1 2 3 0 0 0 0 0 0 19.5 h 19.5";
+        let short = "FLASER 3 1 2 0 0 0 0 0 0 19.6 h 19.6";
+        let long = "FLASER 3 1 2 3 4 0 0 0 0 0 0 19.7 h 19.7";
+        let trailing = "FLASER 3 1 2 3 0 0 0 0 0 0 19.8 h 19.8 7";
+        let log = format!("{good}\n{short}\n{long}\n{trailing}\n");
+        let (records, stats) = read_all(reader_from_bytes(log.into(), "b.clf", false));
+        assert_eq!(records.len(), 1);
+        assert_eq!(stats.damaged, 3);
+        let w = &stats.warnings;
+        assert!(
+            w[0].starts_with("b.clf:2:") && w[0].contains("not a time"),
+            "{w:?}"
+        );
+        assert!(
+            w[1].starts_with("b.clf:3:") && w[1].contains("not a time"),
+            "{w:?}"
+        );
+        assert!(
+            w[2].starts_with("b.clf:4:") && w[2].contains("after the last"),
+            "{w:?}"
+        );
     }
 
     #[test]
