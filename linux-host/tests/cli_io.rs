@@ -226,3 +226,15 @@ fn eval_relations_and_ref_print_json() {
         assert!((err - expected).abs() < 1e-9, "{offset:?}: {v}");
     }
 }
+
+#[test]
+fn garbage_converts_to_an_error_not_an_empty_bag() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("garbage.clf");
+    std::fs::write(&log, "hello world\n\x01\x02 3 4\nFLASER x\n").unwrap();
+    let bag = dir.path().join("garbage.mcap");
+    let (ok, _, stderr) = cloi(&["convert".as_ref(), log.as_os_str(), bag.as_os_str()]);
+    assert!(!ok);
+    assert!(stderr.contains("not a CARMEN log"), "{stderr}");
+    assert!(!bag.exists());
+}

@@ -139,6 +139,18 @@ pub fn run(args: &ConvertArgs, out: &mut dyn Write) -> Result<()> {
         }
         ("clf" | "log", "mcap") => {
             let r = carmen_to_bag(&args.input, output, args.strict, args.range_max)?;
+            if r.scans == 0 && r.odoms == 0 {
+                // An empty bag would only move the failure to whoever reads it next.
+                let _ = std::fs::remove_file(output);
+                bail!(
+                    "{}: no laser or odometry line in {} lines ({} damaged, {} of unknown \
+                     types): not a CARMEN log?",
+                    args.input.display(),
+                    r.input.lines,
+                    r.input.damaged,
+                    r.input.unknown.values().sum::<u64>()
+                );
+            }
             json!({
                 "input": args.input,
                 "output": output,

@@ -18,7 +18,7 @@ pub struct MapArgs {
     /// it, the built-in simulated home is mapped.
     pub input: Option<PathBuf>,
     /// Memory profile: fixes the static resources and the submap grid (default: `office` for
-    /// a file, `home` for the simulated home).
+    /// a file, the world's own for a built-in simulated world, `office` for other worlds).
     #[arg(long)]
     pub profile: Option<Profile>,
     /// TOML file overriding parts of the profile's preset (see `docs/map-config.toml`).
@@ -64,11 +64,7 @@ pub struct MapArgs {
 /// # Errors
 /// Unreadable input or configuration, or outputs that cannot be written.
 pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
-    let profile = args.profile.unwrap_or(if args.input.is_some() {
-        Profile::Office
-    } else {
-        Profile::Home
-    });
+    let profile = args.profile.unwrap_or_else(|| default_profile(args));
     let mut config = MapConfig::load(profile, args.config.as_deref(), &args.set)?;
     if args.deterministic {
         config.run.deterministic = true;
@@ -113,4 +109,46 @@ fn summary(r: &MapReport, out: &std::path::Path) -> String {
         r.wall_seconds,
         out.display()
     )
+}
+
+/// The profile when none is given: `office` for a file; for the simulator, the profile of
+/// the built-in world of that name, and `office` for another world (its size is unknown
+/// here, and the office's pools hold a floor ten times a home's).
+fn default_profile(args: &MapArgs) -> Profile {
+    if args.input.is_some() {
+        return Profile::Office;
+    }
+    args.input_args.sim_world.parse().unwrap_or(Profile::Office)
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Parser;
+
+    use super::*;
+
+    #[derive(Debug, Parser)]
+    struct Cmd {
+        #[command(flatten)]
+        map: MapArgs,
+    }
+
+    fn profile(args: &[&str]) -> Profile {
+        let cmd = Cmd::try_parse_from(std::iter::once("map").chain(args.iter().copied()))
+            .expect("arguments parse");
+        cmd.map.profile.unwrap_or_else(|| default_profile(&cmd.map))
+    }
+
+    #[test]
+    fn the_profile_follows_the_input_unless_given() {
+        assert_eq!(profile(&[]), Profile::Home);
+        assert_eq!(profile(&["--sim-world", "office"]), Profile::Office);
+        assert_eq!(profile(&["--sim-world", "airport"]), Profile::Airport);
+        assert_eq!(profile(&["--sim-world", "my-world.toml"]), Profile::Office);
+        assert_eq!(profile(&["log.clf"]), Profile::Office);
+        assert_eq!(
+            profile(&["--sim-world", "office", "--profile", "home"]),
+            Profile::Home
+        );
+    }
 }
