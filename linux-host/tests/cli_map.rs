@@ -278,3 +278,28 @@ fn json_goes_to_stdout_alone_and_the_summary_to_stderr() {
     assert!(out.stdout.is_empty());
     assert!(!String::from_utf8_lossy(&out.stderr).contains("mapped "));
 }
+
+#[test]
+fn an_input_without_scans_says_what_to_check() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let log = tmp.path().join("odom-only.clf");
+    std::fs::write(
+        &log,
+        "ODOM 0 0 0 0 0 0 1.0 h 1.0\nODOM 0.1 0 0 0 0 0 1.1 h 1.1\n",
+    )
+    .expect("write log");
+    let out = cloi(&[
+        "map",
+        log.to_str().expect("utf-8"),
+        "-q",
+        "--deterministic",
+        "--out",
+        tmp.path().join("out").to_str().expect("utf-8"),
+    ]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("no laser scan") && stderr.contains("--laser"),
+        "{stderr}"
+    );
+}

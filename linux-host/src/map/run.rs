@@ -425,7 +425,22 @@ fn finish(
     input_stats: &InputStats,
 ) -> Result<MapRun> {
     if f.records.is_empty() {
-        bail!("no scan was accepted ({} rejected)", f.rejected);
+        let why = if input_stats.scans == 0 {
+            format!(
+                "the input has no laser scan ({} odometry, {} gyro samples, {} records skipped): \
+                 for a bag, check --scan-topic (and that it holds sensor_msgs/msg/LaserScan); \
+                 for a CARMEN log, check --laser; g2o and TUM files are not sensor logs",
+                input_stats.odometry, input_stats.gyro, input_stats.skipped
+            )
+        } else {
+            format!(
+                "none of its {} scans was accepted ({} rejected; see the warnings above and \
+                 the mapper's counters): are the ranges valid and do odometry stamps overlap \
+                 the scans'?",
+                input_stats.scans, f.rejected
+            )
+        };
+        bail!("no map: {why}");
     }
     // A scan hangs off its reference keyframe; when pruning removed that keyframe, off the
     // nearest kept one, through the front-end motion between the two.
