@@ -5,6 +5,11 @@ use core::fmt;
 
 use super::Timestamp;
 
+/// Most beams one scan may hold: 1081, the beam count of a 270 degree scanner with a
+/// quarter-degree step (Hokuyo UTM-30LX), the densest scanner in the benchmark logs. Every
+/// fixed-capacity scan buffer (the `.cloilog` record, the front-end's points) is sized by it.
+pub const MAX_BEAMS: usize = 1081;
+
 /// Why a scan (as a whole) cannot be used. Single bad beams are not errors: they are counted
 /// in [`BeamStats`] and skipped.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
