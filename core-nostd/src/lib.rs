@@ -7,7 +7,7 @@
 //! Layers, following the paper's block diagram:
 //! * [`geom`]: SE(2) poses, Jacobians, covariance compounding, Mahalanobis distances, and the
 //!   information heuristic of eq. (1).
-//! * [`storage`]: fixed-capacity pools with typed ids and queues.
+//! * [`storage`]: the typed ids of graph nodes and edges.
 //! * [`graph`]: the SE(2) pose graph over caller-provided storage.
 //! * [`solver`]: sparse Gauss-Newton / Levenberg-Marquardt with robust kernels and
 //!   max-mixtures.
@@ -36,7 +36,6 @@
 mod fmt;
 
 pub mod backend;
-pub mod error;
 pub mod frontend;
 pub mod geom;
 pub mod gpe;
@@ -49,5 +48,4 @@ pub mod solver;
 pub mod storage;
 pub mod workload;
 
-pub use error::CapacityError;
 pub use geom::Se2;
