@@ -18,8 +18,6 @@
 //! * [`mapper`]: the LiDAR mapper assembled from all of the above: front-end, frame nodes,
 //!   loop closure, GPE with the worst-case prediction, and the back-end in bounded steps.
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
-//! * [`replay`]: the per-event step run on a recorded log (`.cloilog`) by the firmware and
-//!   by its x86-64 check.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
 #![no_std]
@@ -42,7 +40,6 @@ pub mod gpe;
 pub mod graph;
 pub mod mapper;
 pub mod profile;
-pub mod replay;
 pub mod sensor;
 pub mod solver;
 pub mod storage;
