@@ -24,7 +24,7 @@ pub enum Method {
 /// Levenberg-Marquardt's initial damping in the fallback of [`Method::Auto`].
 pub const AUTO_LM_TAU: f64 = 1e-3;
 
-/// Options of [`solve`].
+/// Options of [`solve`](super::solve).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SolverOptions {
     /// Iteration scheme.

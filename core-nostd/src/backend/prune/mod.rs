@@ -12,6 +12,8 @@
 //! kept and counted. Protected nodes (fixed, with a prior, the first node when it holds the
 //! gauge, or any the caller names) are never eliminated.
 //!
+//! [`MAX_BLANKET`]: crate::backend::marginalize::MAX_BLANKET
+//!
 //! Pruning is meant for an optimized graph: tree edges measure the current estimate, so the
 //! pruned graph's optimum stays where the full graph's was.
 //!

@@ -9,14 +9,14 @@ use super::{MAX_BEAMS, MAX_PAYLOAD};
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum LogError {
-    /// The file does not start with [`MAGIC`].
+    /// The file does not start with [`MAGIC`](super::MAGIC).
     BadMagic,
     /// The version is not one this decoder reads.
     UnsupportedVersion {
         /// Version in the file.
         version: u16,
     },
-    /// The header length field is below [`HEADER_LEN`].
+    /// The header length field is below [`HEADER_LEN`](super::HEADER_LEN).
     BadHeaderLength {
         /// Header length in the file.
         len: u16,
