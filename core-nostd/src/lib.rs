@@ -7,7 +7,7 @@
 //! Layers, following the paper's block diagram:
 //! * [`geom`]: SE(2) poses, Jacobians, covariance compounding, Mahalanobis distances, and the
 //!   information heuristic of eq. (1).
-//! * [`storage`]: fixed-capacity pools with typed ids and queues.
+//! * [`storage`]: the typed ids of graph nodes and edges.
 //! * [`graph`]: the SE(2) pose graph over caller-provided storage.
 //! * [`solver`]: sparse Gauss-Newton / Levenberg-Marquardt with robust kernels and
 //!   max-mixtures.
@@ -18,8 +18,6 @@
 //! * [`mapper`]: the LiDAR mapper assembled from all of the above: front-end, frame nodes,
 //!   loop closure, GPE with the worst-case prediction, and the back-end in bounded steps.
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
-//! * [`replay`]: the per-event step run on a recorded log (`.cloilog`) by the firmware and
-//!   by its x86-64 check.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
 #![no_std]
@@ -36,18 +34,15 @@
 mod fmt;
 
 pub mod backend;
-pub mod error;
 pub mod frontend;
 pub mod geom;
 pub mod gpe;
 pub mod graph;
 pub mod mapper;
 pub mod profile;
-pub mod replay;
 pub mod sensor;
 pub mod solver;
 pub mod storage;
 pub mod workload;
 
-pub use error::CapacityError;
 pub use geom::Se2;

@@ -48,11 +48,7 @@ pub fn build_firmware() -> Result<PathBuf> {
         bail!("firmware build failed ({status})");
     }
     let elf = firmware_elf("cloi-firmware");
-    for bin in [
-        &elf,
-        &firmware_elf("cloi-replay"),
-        &firmware_elf("cloi-mapper"),
-    ] {
+    for bin in [&elf, &firmware_elf("cloi-mapper")] {
         if !bin.is_file() {
             bail!("firmware ELF {} missing after the build", bin.display());
         }
@@ -102,9 +98,8 @@ pub fn build_cloi(target: Option<&str>) -> Result<PathBuf> {
     Ok(bin)
 }
 
-/// Path of a firmware binary after [`build_firmware`]: `cloi-firmware` (the fixed workload),
-/// `cloi-replay` (a `.cloilog` streamed through semihosting) or `cloi-mapper` (the mapper on
-/// a `.cloilog`).
+/// Path of a firmware binary after [`build_firmware`]: `cloi-firmware` (the fixed workload)
+/// or `cloi-mapper` (the mapper on a `.cloilog` streamed through semihosting).
 pub fn firmware_elf(name: &str) -> PathBuf {
     firmware_dir()
         .join("target")
@@ -245,7 +240,7 @@ pub fn parse_log(log: &str) -> Result<FirmwareRun> {
 }
 
 pub mod mapper;
-pub mod replay;
+pub mod stats;
 
 #[cfg(test)]
 mod tests {

@@ -6,7 +6,7 @@ use std::path::Path;
 
 use anyhow::{bail, ensure, Context, Result};
 
-use crate::replay::Percentiles;
+use crate::stats::Percentiles;
 use crate::{field, run_firmware_timeout};
 
 /// One accepted scan of the pose file.

@@ -16,7 +16,7 @@ use cloi_host::map::config::{MapConfig, Profile};
 use cloi_host::map::run::{run, MapSettings, StampPolicy};
 use cloi_host::map::{open_input, InputOptions};
 use cloi_qemu_tests::mapper::run_mapper;
-use cloi_qemu_tests::replay::Percentiles;
+use cloi_qemu_tests::stats::Percentiles;
 use cloi_qemu_tests::{build_firmware, firmware_elf, workspace_root};
 
 /// Scans of intel.clf mapped (about 0.9 MB of log; enough keyframes for the back-end to run

@@ -1,18 +1,19 @@
 //! Shared pieces of the CLOi-Mapper firmware binaries for the bare-metal Cortex-A9 (QEMU
 //! `vexpress-a9`):
 //! * `cloi-firmware` (`src/main.rs`): the core's fixed workload, section by section;
-//! * `cloi-replay` (`src/bin/cloi-replay.rs`): a recorded `.cloilog` streamed from the host
-//!   through semihosting, one event at a time ([`replay`]);
 //! * `cloi-mapper` (`src/bin/cloi-mapper.rs`): the real mapper (`home` profile) over a
 //!   `.cloilog`, fed as `cloi map --deterministic` feeds it ([`mapper`]).
 //!
-//! They are two binaries so that the replay's code (and later the mapper's) cannot change how
-//! the compiler inlines the workload's sections, whose instruction budgets are fixed.
+//! They are two binaries so that the mapper's code cannot change how the compiler inlines the
+//! workload's sections, whose instruction budgets are fixed. The mapper reads its log and
+//! writes its results through [`semihost_io`] and summarizes its instruction counts with
+//! [`stats`].
 #![no_std]
 
 pub mod mapper;
-pub mod replay;
+pub mod semihost_io;
 pub mod statics;
+pub mod stats;
 pub mod timer;
 
 use semihosting::println;

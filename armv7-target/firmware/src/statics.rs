@@ -1,5 +1,5 @@
-//! Static storage handed out once as `&'static mut`: how the large buffers of the replay
-//! (reference points, read buffer, per-scan counts) live in `.bss` instead of on the stack.
+//! Static storage handed out once as `&'static mut`: how the large buffers of the mapper
+//! (its resources, the read buffer, per-scan counts) live in `.bss` instead of on the stack.
 
 use core::cell::UnsafeCell;
 use core::sync::atomic::{AtomicBool, Ordering};

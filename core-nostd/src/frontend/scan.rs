@@ -11,16 +11,16 @@
 //!    voxel is replaced by the centroid of its points (and the mean of their normals). No
 //!    scratch memory is needed; the angular order is lost, which nothing later depends on.
 //!
-//! The geometry is a small struct of our own ([`BeamGeometry`]) so that the sensor layer's
-//! scan view can be adapted to it in one line.
+//! The beam geometry is the front-end's own small struct ([`BeamGeometry`]); the sensor's
+//! mounting on the robot comes with the preprocessing parameters.
 
 use core::fmt;
 
 use crate::geom::Se2;
 
-/// Largest number of points a scan keeps: 1081, the beam count of a 270 degree scanner with
-/// a quarter-degree step (Hokuyo UTM-30LX), the densest scanner in the benchmark logs.
-pub const MAX_POINTS: usize = 1081;
+/// Largest number of points a scan keeps: one per beam of the largest scan the sensor layer
+/// accepts ([`crate::sensor::MAX_BEAMS`]).
+pub const MAX_POINTS: usize = crate::sensor::MAX_BEAMS;
 
 /// One preprocessed point: position and unit normal in the robot frame (normal `[0, 0]` when
 /// none could be estimated).

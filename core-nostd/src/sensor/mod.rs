@@ -4,9 +4,8 @@
 //!
 //! * [`Timestamp`]: signed nanoseconds since an epoch the caller chooses (Unix time for logs).
 //! * [`OdometrySample`], [`ImuSample`]: wheel odometry (pose and twist) and angular rate.
-//! * [`LaserScanView`]: a planar scan over `&[f32]` ranges, checked once, then iterated as
-//!   valid beams; NaN, infinite and out-of-range beams are counted in [`BeamStats`] and skipped.
-//! * [`ScanStampGuard`]: rejects scans whose time does not increase.
+//! * [`ScanGeometry`]: beam angles and range limits of a planar laser scanner, and
+//!   [`MAX_BEAMS`], the most beams one scan may carry.
 //! * [`ImageView`]: a camera picture over `&[u8]` (mono8, rgb8, bgr8).
 //! * [`log`]: the compact binary sensor log (`.cloilog`) streamed to the firmware, with its
 //!   encoder and a streaming, allocation-free decoder.
@@ -19,5 +18,5 @@ mod time;
 
 pub use image::{ImageError, ImageView, PixelFormat};
 pub use odometry::{ImuSample, OdometrySample, Twist2};
-pub use scan::{Beam, BeamStats, LaserScanView, ScanError, ScanGeometry, ScanStampGuard};
+pub use scan::{ScanGeometry, MAX_BEAMS};
 pub use time::Timestamp;

@@ -1,6 +1,7 @@
 use super::*;
 use crate::geom::{Info3, Se2};
 use crate::graph::{EdgeKind, GraphStorage, PoseEdge, RobustKernel};
+use crate::storage::NodeId;
 use proptest::prelude::*;
 
 const N: usize = 40;

@@ -1,25 +1,21 @@
-//! Fixed-capacity storage: pools with typed ids, and the queues that join the real-time part of
-//! the mapper to its background part.
+//! The typed ids that address the pose graph's nodes and edges: `u32` newtypes, so a node id
+//! cannot be passed where an edge id is meant.
 
-mod pool;
+/// Declares a `Copy` newtype id over `u32`.
+macro_rules! typed_id {
+    ($(#[$meta:meta])* $name:ident) => {
+        $(#[$meta])*
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+        #[cfg_attr(feature = "defmt", derive(defmt::Format))]
+        pub struct $name(pub u32);
+    };
+}
 
-pub use pool::{Pool, PoolId, Slot};
-
-/// Single-producer single-consumer queue of fixed capacity (lock-free, usable from an interrupt
-/// or a second thread). Re-exported from `heapless`.
-pub use heapless::spsc::Queue as SpscQueue;
-/// Double-ended queue of fixed capacity. Re-exported from `heapless`.
-pub use heapless::Deque;
-
-crate::typed_id!(
+typed_id!(
     /// Id of a frame node in the pose graph.
     NodeId
 );
-crate::typed_id!(
+typed_id!(
     /// Id of an edge (constraint) in the pose graph.
     EdgeId
-);
-crate::typed_id!(
-    /// Id of an occupancy-grid submap.
-    SubmapId
 );

@@ -5,7 +5,6 @@
 //! * [`bag_read`]: reading ROS 2 bags (MCAP) as a time-ordered stream of sensor messages.
 //! * [`carmen`]: CARMEN logs (`.clf`, `.log`, `.gz`, `.bz2`).
 //! * [`convert`]: CARMEN records to ROS 2 messages (`cloi convert`).
-//! * [`frames`]: ROS 2 messages to the core's sensor frames.
 //! * [`tum`]: TUM and KITTI trajectories.
 //! * [`map_out`]: `map.pgm` + `map.yaml`, `map.png` with the trajectory, `result.mcap`.
 //! * [`cloilog`]: CARMEN logs to the firmware's compact binary sensor log.
@@ -19,7 +18,6 @@ pub mod carmen;
 pub mod cli;
 pub mod cloilog;
 pub mod convert;
-pub mod frames;
 pub mod map_out;
 pub mod ros2;
 pub mod tum;
