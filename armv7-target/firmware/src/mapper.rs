@@ -29,9 +29,7 @@
 use core::fmt::Write as _;
 
 use cloi_core::frontend::BeamGeometry;
-use cloi_core::mapper::{
-    BackendStep, Feeder, Mapper, MapperConfig, Probe, ScanInput, Section,
-};
+use cloi_core::mapper::{BackendStep, Feeder, Mapper, MapperConfig, Probe, ScanInput, Section};
 use cloi_core::profile::HomeResources;
 use cloi_core::sensor::log::{LogReader, LogRecord, MAX_BEAMS, MIN_READER_BUFFER};
 use semihosting::fs::File;
@@ -162,9 +160,8 @@ pub fn process_event(state: &mut State, record: &LogRecord<'_>) -> EventCost {
             let (mapper, feeder) = (&mut state.mapper, &mut state.feeder);
             // The scan's own odometry pose (if any) is pushed inside, as on the host.
             let mut probe = SectionTimer::default();
-            let (result, n) = measure(|| {
-                feeder.scan_probed(mapper, &input, s.meta.odom, false, &mut probe)
-            });
+            let (result, n) =
+                measure(|| feeder.scan_probed(mapper, &input, s.meta.odom, false, &mut probe));
             cost.push_scan = n;
             cost.sections = probe.counts;
             cost.loop_search = probe.loop_search;
@@ -400,15 +397,33 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         |f| accepted(f) && f & FLAG_KEYFRAME == 0,
         scratch,
     );
-    print_stat("keyframe_scan", sc(), fl, |f| f & FLAG_KEYFRAME != 0, scratch);
+    print_stat(
+        "keyframe_scan",
+        sc(),
+        fl,
+        |f| f & FLAG_KEYFRAME != 0,
+        scratch,
+    );
     // The parts of push_scan (SectionTimer): front-end and GPE on every accepted scan, the
     // keyframe part on every accepted scan (the selection test; a keyframe's updates on
     // keyframes), the loop search where it ran.
     let part = |i: usize| section_counts[..kept].iter().map(move |p| p[i]);
     print_stat("frontend", part(0), fl, accepted, scratch);
     print_stat("gpe", part(1), fl, accepted, scratch);
-    print_stat("keyframe_update", part(2), fl, |f| f & FLAG_KEYFRAME != 0, scratch);
-    print_stat("loop_search", part(3), fl, |f| f & FLAG_LOOP_SEARCH != 0, scratch);
+    print_stat(
+        "keyframe_update",
+        part(2),
+        fl,
+        |f| f & FLAG_KEYFRAME != 0,
+        scratch,
+    );
+    print_stat(
+        "loop_search",
+        part(3),
+        fl,
+        |f| f & FLAG_LOOP_SEARCH != 0,
+        scratch,
+    );
     print_stat("backend_step", bc.iter().copied(), fl, |_| true, scratch);
     print_stat(
         "backend_working",
