@@ -1,4 +1,4 @@
-//! `cloi eval relations | ate | rpe | ref`: each prints one JSON object.
+//! `cloi eval relations | ate | rpe | ref | arps | loops`: each prints one JSON object.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -8,6 +8,7 @@ use clap::{Args, Subcommand};
 use cloi_core::Se2;
 use serde_json::json;
 
+use super::loops::check_loops;
 use super::metrics::{ate, rpe, DeltaUnit};
 use super::relations::{load_relations, relations_from_reference, score, PlanarTrajectory};
 use super::traj::{Alignment, Trajectory};
@@ -26,6 +27,38 @@ pub enum EvalCommand {
     Ref(RefArgs),
     /// Average relative pose shift (ARPS) of a pruned pose graph against its original.
     Arps(ArpsArgs),
+    /// Loop edges of a `cloi map` pose graph that disagree with ground truth.
+    Loops(LoopsArgs),
+}
+
+/// Arguments of `cloi eval loops`.
+#[derive(Debug, Args)]
+pub struct LoopsArgs {
+    /// The pose graph `cloi map` wrote (`graph.g2o`).
+    #[arg(long)]
+    pub graph: PathBuf,
+    /// The trajectory of the same run (`trajectory.tum`): it gives each vertex its time.
+    #[arg(long)]
+    pub trajectory: PathBuf,
+    /// Ground truth: a TUM file (`cloi sim`'s `X.gt.tum`) or GMapping reference poses
+    /// (`*.gfs_reference_poses.txt`, recognised by the name).
+    #[arg(long)]
+    pub reference: PathBuf,
+    /// Pose of the sensor on the robot (`X,Y,THETA`) whose poses the reference holds; the
+    /// reference is moved back to the robot's frame (as for `cloi eval ref`).
+    #[arg(long, value_name = "X,Y,THETA", value_parser = parse_pose, allow_hyphen_values = true)]
+    pub sensor_offset: Option<Se2>,
+    /// Largest time difference between a vertex's scan and its ground-truth pose (s).
+    #[arg(long, default_value_t = 0.02)]
+    pub max_time_diff: f64,
+    /// Without a ground-truth pose within `--max-time-diff`, interpolate between the poses
+    /// around the time if they are at most this many seconds apart (GMapping's reference
+    /// holds only the scans it processed); 0 never interpolates.
+    #[arg(long, default_value_t = 0.0)]
+    pub max_gap: f64,
+    /// A loop edge whose translation differs from ground truth by more than this (m) is wrong.
+    #[arg(long, default_value_t = 0.3)]
+    pub threshold: f64,
 }
 
 /// Arguments of `cloi eval arps`.
@@ -144,6 +177,37 @@ pub fn run(cmd: &EvalCommand, out: &mut dyn Write) -> Result<()> {
     let value = match cmd {
         EvalCommand::Arps(a) => {
             serde_json::to_value(crate::prune::eval_arps(&a.original, &a.pruned, a.as_is)?)?
+        }
+        EvalCommand::Loops(a) => {
+            if !(a.max_time_diff >= 0.0 && a.max_time_diff < 10.0) {
+                anyhow::bail!("--max-time-diff must be in [0, 10) seconds");
+            }
+            if !(a.max_gap >= 0.0 && a.max_gap < 600.0) {
+                anyhow::bail!("--max-gap must be in [0, 600) seconds");
+            }
+            let graph = crate::graph_io::read_graph(&a.graph, None)?;
+            let estimate = PlanarTrajectory::load_tum(&a.trajectory)?;
+            let is_gfs = a
+                .reference
+                .to_string_lossy()
+                .ends_with("gfs_reference_poses.txt");
+            let mut truth = if is_gfs {
+                PlanarTrajectory::load_reference(&a.reference)?
+            } else {
+                PlanarTrajectory::load_tum(&a.reference)?
+            };
+            if let Some(o) = a.sensor_offset {
+                truth = truth.in_sensor_frame(&o.inverse());
+            }
+            let tolerance_ns = (a.max_time_diff * 1e9).round() as i64;
+            serde_json::to_value(check_loops(
+                &graph,
+                &estimate,
+                &truth,
+                tolerance_ns,
+                (a.max_gap * 1e9).round() as i64,
+                a.threshold,
+            )?)?
         }
         EvalCommand::Relations(a) => {
             let traj = in_frame(PlanarTrajectory::load_tum(&a.trajectory)?, a.sensor_offset);

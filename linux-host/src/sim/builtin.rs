@@ -6,18 +6,24 @@ use toml::Spanned;
 
 use super::world::{
     BoxSpec, CeilingSpec, FaultKind, FaultSpec, FeatureKind, FeatureSpec, LegSpec, Material,
-    PosterSpec, RegionKind, RegionSpec, RobotKind, RouteSpec, WallSpec, WorldFile, P2,
+    OdometrySpec, PosterSpec, RegionKind, RegionSpec, RobotKind, RouteSpec, WallSpec, WorldFile,
+    P2,
 };
 
 /// Names of the built-in worlds.
 pub const NAMES: [&str; 3] = ["home", "office", "airport"];
 
-fn sp<T>(v: T) -> Spanned<T> {
+pub(crate) fn sp<T>(v: T) -> Spanned<T> {
     Spanned::new(0..0, v)
 }
 
 /// A straight wall from `a` to `b` (axis-aligned) with door gaps given as intervals along it.
-fn wall_with_doors(walls: &mut Vec<Spanned<WallSpec>>, a: P2, b: P2, doors: &[(f64, f64)]) {
+pub(crate) fn wall_with_doors(
+    walls: &mut Vec<Spanned<WallSpec>>,
+    a: P2,
+    b: P2,
+    doors: &[(f64, f64)],
+) {
     let axis = if (a[0] - b[0]).abs() > (a[1] - b[1]).abs() {
         0
     } else {
@@ -41,7 +47,7 @@ fn wall_with_doors(walls: &mut Vec<Spanned<WallSpec>>, a: P2, b: P2, doors: &[(f
     }
 }
 
-fn plain_wall(points: Vec<P2>, material: Material) -> WallSpec {
+pub(crate) fn plain_wall(points: Vec<P2>, material: Material) -> WallSpec {
     WallSpec {
         points,
         closed: false,
@@ -50,7 +56,7 @@ fn plain_wall(points: Vec<P2>, material: Material) -> WallSpec {
     }
 }
 
-fn boxed(min: P2, max: P2, material: Material, height: f64) -> Spanned<BoxSpec> {
+pub(crate) fn boxed(min: P2, max: P2, material: Material, height: f64) -> Spanned<BoxSpec> {
     sp(BoxSpec {
         min,
         max,
@@ -59,7 +65,7 @@ fn boxed(min: P2, max: P2, material: Material, height: f64) -> Spanned<BoxSpec> 
     })
 }
 
-fn feature(kind: FeatureKind, c: P2, size: P2) -> Spanned<FeatureSpec> {
+pub(crate) fn feature(kind: FeatureKind, c: P2, size: P2) -> Spanned<FeatureSpec> {
     sp(FeatureSpec {
         kind,
         min: [c[0] - size[0] / 2.0, c[1] - size[1] / 2.0],
@@ -67,7 +73,7 @@ fn feature(kind: FeatureKind, c: P2, size: P2) -> Spanned<FeatureSpec> {
     })
 }
 
-fn poster(a: P2, b: P2) -> Spanned<PosterSpec> {
+pub(crate) fn poster(a: P2, b: P2) -> Spanned<PosterSpec> {
     sp(PosterSpec {
         a,
         b,
@@ -76,7 +82,7 @@ fn poster(a: P2, b: P2) -> Spanned<PosterSpec> {
     })
 }
 
-fn zigzag(min: P2, max: P2, spacing: f64, vertical: bool) -> LegSpec {
+pub(crate) fn zigzag(min: P2, max: P2, spacing: f64, vertical: bool) -> LegSpec {
     LegSpec::Zigzag {
         min,
         max,
@@ -85,7 +91,7 @@ fn zigzag(min: P2, max: P2, spacing: f64, vertical: bool) -> LegSpec {
     }
 }
 
-fn waypoints(points: &[P2]) -> LegSpec {
+pub(crate) fn waypoints(points: &[P2]) -> LegSpec {
     LegSpec::Waypoints {
         points: points.to_vec(),
     }
@@ -274,6 +280,7 @@ pub fn home() -> WorldFile {
             legs,
         }),
         faults: Vec::new(),
+        odometry: OdometrySpec::default(),
     }
 }
 
@@ -377,6 +384,7 @@ pub fn office() -> WorldFile {
             legs,
         }),
         faults: Vec::new(),
+        odometry: OdometrySpec::default(),
     }
 }
 
@@ -502,6 +510,7 @@ pub fn airport() -> WorldFile {
             legs,
         }),
         faults: Vec::new(),
+        odometry: OdometrySpec::default(),
     }
 }
 

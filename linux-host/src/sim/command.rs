@@ -8,20 +8,28 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 
 use super::builtin;
-use super::engine::{SensorSet, SimConfig, Simulation, Summary};
+use super::engine::{Rig, SensorSet, SimConfig, Simulation, Summary};
+use super::generate;
 use super::output::{self, BagSink, Tee, TumSink};
+use super::path;
 use super::preview;
 use super::world::{World, WorldFile};
 
 /// Arguments of `cloi sim`.
 #[derive(Debug, Args)]
 pub struct SimArgs {
-    /// `home`, `office`, `airport` or a TOML world file (see docs/sim/world-format.md).
+    /// `home`, `office`, `airport`, a generated building `gen:SEED[:SIZE][:nogyro]` (SIZE: `s`
+    /// 200-800 m^2, `m` 800-3,000, `l` 3,000-8,000, `xl` 8,000-20,000; drawn from the seed
+    /// when absent; `nogyro`: a robot without gyro) or a TOML world file (see
+    /// docs/sim/world-format.md).
     #[arg(long, default_value = "home")]
     pub world: String,
     /// Simulated seconds.
     #[arg(long, default_value_t = 60.0)]
     pub duration: f64,
+    /// Simulate this many laps of the world's route instead of `--duration` seconds.
+    #[arg(long)]
+    pub laps: Option<f64>,
     /// Seed of every random draw (same seed, same bytes).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -86,10 +94,14 @@ pub fn load_world(spec: &str, duration: f64) -> Result<WorldFile> {
     if let Some(w) = builtin::builtin(spec, duration) {
         return Ok(w);
     }
+    if let Some(g) = generate::parse_spec(spec).map_err(anyhow::Error::msg)? {
+        return generate::generate(&g, duration).map_err(anyhow::Error::msg);
+    }
     let path = Path::new(spec);
     if !path.exists() {
         bail!(
-            "--world {spec:?}: neither a built-in world ({}) nor an existing file",
+            "--world {spec:?}: neither a built-in world ({}), a generated one (gen:SEED) nor an \
+             existing file",
             builtin::NAMES.join(", ")
         );
     }
@@ -109,17 +121,34 @@ pub fn run(args: &SimArgs, out: &mut dyn Write) -> Result<()> {
     if !(args.duration > 0.0 && args.duration.is_finite()) {
         bail!("--duration must be a positive number of seconds");
     }
+    if args.laps.is_some_and(|l| !(l > 0.0 && l <= 1000.0)) {
+        bail!("--laps must be in (0, 1000]");
+    }
     if !(args.camera_rate > 0.0 && args.camera_rate <= 60.0) {
         bail!("--camera-rate must be in (0, 60] Hz");
     }
     let (width, height) = parse_resolution(&args.resolution)?;
-    let file = load_world(&args.world, args.duration)?;
+    let mut duration = args.duration;
+    let mut file = load_world(&args.world, duration)?;
+    let limits = Rig::new(file.robot, &SimConfig::default()).limits;
+    let (lap_m, lap_s) = path::lap(file.route.get_ref(), &limits);
+    writeln!(
+        out,
+        "route: {lap_m:.1} m per lap, {lap_s:.1} s per lap at {} m/s",
+        limits.speed
+    )?;
+    if let Some(laps) = args.laps {
+        // Whole seconds, so the figure can be passed on to `cloi map --sim-duration`.
+        duration = (laps * lap_s).ceil().max(1.0);
+        file = load_world(&args.world, duration)?;
+        writeln!(out, "duration: {duration} s")?;
+    }
     if let Some(path) = &args.dump_world {
         output::write_text(path, &file.to_toml().context("serialising the world")?)?;
         writeln!(out, "world written to {}", path.display())?;
     }
     let cfg = SimConfig {
-        duration: args.duration,
+        duration,
         seed: args.seed,
         sensors: args.sensors,
         fisheye: args.lens == "fisheye",
@@ -131,7 +160,7 @@ pub fn run(args: &SimArgs, out: &mut dyn Write) -> Result<()> {
     };
     let sim = Simulation::new(World::from_file(&file), cfg);
     if let Some(path) = &args.preview {
-        let at = args.preview_at.unwrap_or(args.duration * 0.5);
+        let at = args.preview_at.unwrap_or(duration * 0.5);
         preview::write(&sim, path, args.preview_size.clamp(64, 4096), at)?;
         writeln!(out, "preview written to {}", path.display())?;
     }
@@ -157,9 +186,9 @@ pub fn run(args: &SimArgs, out: &mut dyn Write) -> Result<()> {
         "{}: {:.0} s simulated in {:.1} s ({:.1} sim-s per wall-s), {} messages: {} scans ({} lost \
          to outage), {} frames ({} dropped), {} odometry, {} imu, {} ground truth",
         sim.world.name,
-        args.duration,
+        duration,
         wall,
-        args.duration / wall.max(1e-9),
+        duration / wall.max(1e-9),
         messages,
         summary.scans,
         summary.lost_scans,
@@ -189,6 +218,7 @@ mod tests {
         SimArgs {
             world: "home".into(),
             duration: 2.0,
+            laps: None,
             seed,
             sensors: SensorSet::CameraLidar,
             out: Some(out.to_path_buf()),

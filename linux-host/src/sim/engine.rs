@@ -133,6 +133,8 @@ pub struct Rig {
     pub wheels: WheelParams,
     /// Gyro.
     pub gyro: GyroParams,
+    /// Whether the gyro is carried (else no IMU messages).
+    pub imu: bool,
     /// Timing of the LiDAR, odometry, IMU and camera streams.
     pub timing: [Timing; 4],
 }
@@ -219,6 +221,7 @@ impl Rig {
             cameras,
             wheels,
             gyro,
+            imu: true,
             timing,
         }
     }
@@ -339,7 +342,14 @@ enum Job {
 impl Simulation {
     /// Prepares the trajectory and cameras.
     pub fn new(world: World, cfg: SimConfig) -> Simulation {
-        let rig = Rig::new(world.robot, &cfg);
+        let mut rig = Rig::new(world.robot, &cfg);
+        let o = &world.odometry;
+        rig.wheels.scale_offset = o.wheel_scale_error;
+        if o.wheel_noise > 0.0 {
+            rig.wheels.noise = rig.wheels.noise.hypot(o.wheel_noise);
+        }
+        rig.gyro.bias_offset = o.gyro_bias;
+        rig.imu = o.gyro;
         let trajectory = Trajectory::new(&world.route, &rig.limits, cfg.duration + 2.0);
         let cameras = rig.cameras.iter().map(|p| Camera::new(*p)).collect();
         Simulation {
@@ -565,7 +575,7 @@ impl Simulation {
             loop {
                 let k = next[IMU];
                 let tc = self.capture_time(IMU, k);
-                if tc >= t1 {
+                if tc >= t1 || !self.rig.imu {
                     break;
                 }
                 let ta = last_capture[IMU];

@@ -4,6 +4,7 @@
 //!
 //! * [`world`]: floor plans, the TOML world format and the ray-casting grid;
 //! * [`builtin`]: the `home`, `office` and `airport` worlds;
+//! * [`generate`]: random buildings from a seed (`gen:SEED[:SIZE][:nogyro]`);
 //! * [`path`]: zigzag coverage and guide tours as exact trajectories;
 //! * [`lidar`], [`odometry`], [`camera`] (+ [`texture`]): the sensor models;
 //! * [`engine`]: the time-ordered stream of [`engine::Sample`]s, deterministic from a seed,
@@ -16,6 +17,7 @@ pub mod builtin;
 pub mod camera;
 pub mod command;
 pub mod engine;
+pub mod generate;
 pub mod lidar;
 pub mod odometry;
 pub mod output;

@@ -7,14 +7,14 @@
 //!
 //! `d_meas = d_true · k_w · k_slip + N(0, (σ² + σ_slip²) · |d_true|)`
 //!
-//! where `k_w = 1 + N(0, scale_sigma²)` is a fixed per-wheel scale error drawn once (tyre
-//! radius), `k_slip`/`σ_slip` come from slip zones and slip faults (1 and 0 elsewhere), and `σ`
+//! where `k_w = 1 + N(0, scale_sigma²) + e_w` is a fixed per-wheel scale error drawn once (tyre
+//! radius) plus an optional set error `e_w` (a cheap robot's worn tyre), `k_slip`/`σ_slip` come from slip zones and slip faults (1 and 0 elsewhere), and `σ`
 //! is the noise per square-root metre. The measured travel drives a continuous encoder angle that
 //! is quantised to integer ticks (quantisation does not accumulate), and the published pose is
 //! integrated from tick differences with the *nominal* geometry (midpoint rule).
 //!
 //! **Gyro** at `rate_hz` (<= 20 Hz): each sample is the mean yaw rate over its interval plus a
-//! bias (initial `N(0, bias_sigma²)`, random walk `bias_walk` rad/s/√s) plus white noise
+//! bias (initial `N(0, bias_sigma²)` plus an optional set offset, random walk `bias_walk` rad/s/√s) plus white noise
 //! `N(0, noise²)`. Linear acceleration (forward, centripetal, gravity) gets `accel_noise`.
 
 use cloi_core::geom::Se2;
@@ -33,6 +33,8 @@ pub struct WheelParams {
     pub ticks_per_rev: u32,
     /// 1-sigma per-wheel scale error (drawn once per run).
     pub scale_sigma: f64,
+    /// Fixed scale error of the left and right wheel, added to the drawn one.
+    pub scale_offset: [f64; 2],
     /// Travel noise, metres per square-root metre (1 sigma).
     pub noise: f64,
     /// Odometry messages per second.
@@ -47,6 +49,7 @@ impl WheelParams {
             track: if speed > 0.5 { 0.45 } else { 0.23 },
             ticks_per_rev: 2048,
             scale_sigma: 0.005,
+            scale_offset: [0.0; 2],
             noise: 0.01,
             rate_hz: 50.0,
         }
@@ -87,7 +90,10 @@ impl WheelOdometry {
     /// New odometry at the identity with scale errors drawn from `rng`.
     pub fn new(params: WheelParams, rng: &mut ChaCha8Rng) -> WheelOdometry {
         let mut draw = || 1.0 + params.scale_sigma * rng.sample::<f64, _>(StandardNormal);
-        let scale = [draw(), draw()];
+        let scale = [
+            draw() + params.scale_offset[0],
+            draw() + params.scale_offset[1],
+        ];
         WheelOdometry {
             params,
             scale,
@@ -159,6 +165,8 @@ pub struct GyroParams {
     pub noise: f64,
     /// Initial bias, rad/s (1 sigma).
     pub bias_sigma: f64,
+    /// Constant bias added to the drawn one, rad/s.
+    pub bias_offset: f64,
     /// Bias random walk, rad/s per square-root second.
     pub bias_walk: f64,
     /// Accelerometer noise, m/s^2 (1 sigma).
@@ -171,6 +179,7 @@ impl Default for GyroParams {
             rate_hz: 20.0,
             noise: 0.004,
             bias_sigma: 0.003,
+            bias_offset: 0.0,
             bias_walk: 0.0002,
             accel_noise: 0.03,
         }
@@ -197,7 +206,7 @@ pub struct ImuReading {
 impl Gyro {
     /// A gyro with its initial bias drawn from `rng`.
     pub fn new(params: GyroParams, rng: &mut ChaCha8Rng) -> Gyro {
-        let bias = params.bias_sigma * rng.sample::<f64, _>(StandardNormal);
+        let bias = params.bias_sigma * rng.sample::<f64, _>(StandardNormal) + params.bias_offset;
         Gyro { params, bias }
     }
 

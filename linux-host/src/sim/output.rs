@@ -379,10 +379,12 @@ pub fn sidecar(sim: &Simulation) -> serde_json::Value {
         "wheels": {
             "topic": "/odom", "radius": rig.wheels.radius, "track": rig.wheels.track,
             "ticks_per_rev": rig.wheels.ticks_per_rev, "scale_sigma": rig.wheels.scale_sigma,
+            "scale_offset": rig.wheels.scale_offset,
             "noise_per_sqrt_m": rig.wheels.noise, "rate_hz": rig.wheels.rate_hz,
         },
         "gyro": {
             "topic": "/imu", "rate_hz": rig.gyro.rate_hz, "noise": rig.gyro.noise,
+            "present": rig.imu, "bias_offset": rig.gyro.bias_offset,
             "bias_sigma": rig.gyro.bias_sigma, "bias_walk": rig.gyro.bias_walk,
             "accel_noise": rig.gyro.accel_noise,
         },

@@ -121,6 +121,31 @@ pub fn route_points(route: &RouteSpec) -> Vec<P2> {
     pts
 }
 
+/// Length (m) and duration (s) of one lap of the route with the given limits, turns included.
+pub fn lap(route: &RouteSpec, limits: &MotionLimits) -> (f64, f64) {
+    let pts = route_points(route);
+    let mut heading = None;
+    let (mut length, mut time) = (0.0, 0.0);
+    for pair in pts.windows(2) {
+        let (dx, dy) = (pair[1][0] - pair[0][0], pair[1][1] - pair[0][1]);
+        let len = dx.hypot(dy);
+        if len < 1e-6 {
+            continue;
+        }
+        let dir = dy.atan2(dx);
+        if let Some(h) = heading {
+            let turn: f64 = wrap_angle(dir - h);
+            if turn.abs() > 1e-9 {
+                time += trapezoid_duration(turn.abs(), limits.turn_rate, limits.turn_accel);
+            }
+        }
+        heading = Some(dir);
+        time += trapezoid_duration(len, limits.speed, limits.accel);
+        length += len;
+    }
+    (length, time)
+}
+
 impl Trajectory {
     /// Drives the route (as a loop) with the given limits until at least `duration` seconds
     /// are covered.

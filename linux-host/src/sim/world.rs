@@ -89,6 +89,44 @@ pub struct WorldFile {
     /// Time-scheduled faults.
     #[serde(default, rename = "fault")]
     pub faults: Vec<toml::Spanned<FaultSpec>>,
+    /// The robot's odometry sensors, when they differ from the nominal rig.
+    #[serde(default, skip_serializing_if = "OdometrySpec::is_nominal")]
+    pub odometry: OdometrySpec,
+}
+
+/// How the robot's wheels and gyro differ from the nominal rig: a cheap robot's fixed wheel
+/// scale errors (a worn or mis-sized tyre; unequal errors make the heading drift), extra wheel
+/// noise, a constant gyro bias, or no gyro at all.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct OdometrySpec {
+    /// Fixed scale error of the left and right wheel, added to the per-run random draw
+    /// (0.01: the wheel reports 1 % more travel than it rolled).
+    pub wheel_scale_error: [f64; 2],
+    /// Extra wheel noise, fraction of the travel per square-root metre (added in quadrature).
+    pub wheel_noise: f64,
+    /// Constant gyro bias added to the random one, rad/s.
+    pub gyro_bias: f64,
+    /// Whether the robot carries a gyro; without one the stream has no IMU messages.
+    pub gyro: bool,
+}
+
+impl Default for OdometrySpec {
+    fn default() -> Self {
+        OdometrySpec {
+            wheel_scale_error: [0.0; 2],
+            wheel_noise: 0.0,
+            gyro_bias: 0.0,
+            gyro: true,
+        }
+    }
+}
+
+impl OdometrySpec {
+    /// Whether this is the nominal rig (then it is left out of a dumped world file).
+    pub fn is_nominal(&self) -> bool {
+        *self == OdometrySpec::default()
+    }
 }
 
 /// Ceiling appearance.
@@ -379,7 +417,7 @@ impl WorldFile {
     }
 
     /// Checks the values a parser cannot: returns the span of the offending item.
-    fn validate(&self) -> Result<(), (Option<std::ops::Range<usize>>, String)> {
+    pub(crate) fn validate(&self) -> Result<(), (Option<std::ops::Range<usize>>, String)> {
         let fin = |p: &P2| p[0].is_finite() && p[1].is_finite();
         if !(self.ceiling_height.is_finite() && self.ceiling_height > 0.5) {
             return Err((None, "ceiling_height must be > 0.5 m".into()));
@@ -445,6 +483,18 @@ impl WorldFile {
             if !(spec.start >= 0.0 && spec.end > spec.start) {
                 return Err((Some(f.span()), "fault needs 0 <= start < end".into()));
             }
+        }
+        let o = &self.odometry;
+        if !(o.wheel_scale_error.iter().all(|e| e.abs() < 0.2)
+            && (0.0..0.5).contains(&o.wheel_noise)
+            && o.gyro_bias.abs() < 0.1)
+        {
+            return Err((
+                None,
+                "odometry needs |wheel_scale_error| < 0.2, 0 <= wheel_noise < 0.5 and \
+                 |gyro_bias| < 0.1 rad/s"
+                    .into(),
+            ));
         }
         let route = self.route.get_ref();
         if route.legs.is_empty() {
@@ -647,6 +697,8 @@ pub struct World {
     pub route: RouteSpec,
     /// Fault schedule.
     pub faults: Vec<FaultSpec>,
+    /// How the odometry sensors differ from the nominal rig.
+    pub odometry: OdometrySpec,
     /// Bounding box lower-left corner.
     pub bounds_min: P2,
     /// Bounding box upper-right corner.
@@ -800,6 +852,7 @@ impl World {
             regions,
             route: file.route.get_ref().clone(),
             faults: file.faults.iter().map(|f| f.get_ref().clone()).collect(),
+            odometry: file.odometry.clone(),
             bounds_min: lo,
             bounds_max: hi,
             segment_grid,
