@@ -59,7 +59,8 @@ pub fn read_tum(path: &Path) -> Result<Vec<StampedPose>> {
                 v.len()
             );
         };
-        check_values(&v, MAX_COORDINATE)
+        check_values(&[t], MAX_STAMP_S)
+            .and_then(|()| check_values(&v[1..], MAX_COORDINATE))
             .with_context(|| format!("{}:{}", path.display(), i + 1))?;
         let q = Quaternion::new(qw, qx, qy, qz);
         if q.norm() < 1e-9 {
@@ -78,9 +79,12 @@ pub fn read_tum(path: &Path) -> Result<Vec<StampedPose>> {
     Ok(out)
 }
 
-/// Largest coordinate or time stamp accepted, in the file's units: beyond it a value is
-/// corrupt (a planet-sized map) and would only turn sums and decompositions into infinities.
+/// Largest coordinate accepted, in the file's units: beyond it a value is corrupt (a
+/// planet-sized map) and would only turn sums and decompositions into infinities.
 pub const MAX_COORDINATE: f64 = 1e9;
+
+/// Largest time stamp accepted, seconds: Unix time of the year 5138; more is corruption.
+pub const MAX_STAMP_S: f64 = 1e11;
 
 /// Checks that every value is finite and at most `max` in magnitude.
 fn check_values(values: &[f64], max: f64) -> Result<()> {
@@ -238,8 +242,9 @@ mod tests {
             ("0 0 0 0 0 0 0 inf", "finite"),
             ("0 1e308 0 0 0 0 0 1", "within"),
             ("0 0 0 0 0 0 0 0", "zero"),
+            ("1e12 0 0 0 0 0 0 1", "within"),
         ] {
-            std::fs::write(&path, format!("1 0 0 0 0 0 0 1\n{row}\n")).unwrap();
+            std::fs::write(&path, format!("1700000000.5 0 0 0 0 0 0 1\n{row}\n")).unwrap();
             let err = format!("{:#}", read_tum(&path).unwrap_err());
             assert!(
                 err.contains("bad.tum:2") && err.contains(why),
