@@ -83,6 +83,9 @@ pub fn run_command(args: &MapArgs, out: &mut dyn Write) -> Result<()> {
         progress: !args.quiet,
     };
     let result = run(input, &settings)?;
+    for w in &result.warnings {
+        eprintln!("warning: {w}");
+    }
     writeln!(out, "{}", serde_json::to_string_pretty(&result.report)?)?;
     writeln!(
         out,
