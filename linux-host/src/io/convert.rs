@@ -8,8 +8,13 @@
 //!   `PARAM robot_front_laser_max`, else 80 m, so the logs' "no return" value 81.83 m lies
 //!   beyond it.
 //! * `ODOM` -> `nav_msgs/msg/Odometry` on `/odom` (`odom` -> `base_link`, velocity `tv`, `rv`)
-//!   and the same transform on `/tf`. A log without `ODOM` lines (mit-csail) gets its odometry
-//!   from the odometry pose inside the laser lines, until the first `ODOM` line appears.
+//!   and the same transform on `/tf`.
+//! * The odometry pose inside a front or robot laser line (`FLASER`, `ROBOTLASER1`) is the
+//!   robot's odometry at the scan's own time, as the robot recorded it: it goes to `/odom` and
+//!   `/tf` too, stamped like the scan and written before it (velocity zero: the line has
+//!   none). A log without `ODOM` lines (mit-csail) has only these; in the others they sit
+//!   between the `ODOM` samples, so a mapper fed in stamp order seeds each scan with the pose
+//!   logged for it rather than one interpolated between `ODOM` samples.
 //! * The laser's mounting (`base_link` -> `laser`) goes once to `/tf_static` with the first
 //!   scan: `PARAM robot_frontlaser_offset` (an x offset) if it came before, else the offset
 //!   between the first front scan's laser pose and odometry pose.
@@ -56,7 +61,6 @@ pub struct CarmenToRos {
     pub range_max_override: Option<f32>,
     front_laser_max: Option<f32>,
     front_laser_offset: Option<f64>,
-    seen_odom_line: bool,
     tf_static_done: bool,
 }
 
@@ -151,7 +155,6 @@ impl CarmenToRos {
                 _ => {}
             },
             CarmenRecord::Odom(o) => {
-                self.seen_odom_line = true;
                 let odom = odometry(o.stamp_ns, o.pose, o.tv, o.rv);
                 out.push(Stamped {
                     topic: "/tf",
@@ -185,7 +188,7 @@ impl CarmenToRos {
                         }),
                     });
                 }
-                if !self.seen_odom_line && front {
+                if front {
                     if let Some(pose) = laser.odom_pose {
                         let odom = odometry(laser.stamp_ns, pose, 0.0, 0.0);
                         out.push(Stamped {
@@ -288,6 +291,8 @@ FLASER 3 1.0 2.0 3.0 1.1 2.0 0.0 1.0 2.0 0.0 10.7 h 0\n";
                 "/scan",
                 "/tf",
                 "/odom",
+                "/tf",
+                "/odom",
                 "/scan"
             ]
         );
@@ -307,6 +312,12 @@ FLASER 3 1.0 2.0 3.0 1.1 2.0 0.0 1.0 2.0 0.0 10.7 h 0\n";
         };
         assert_eq!(odom.twist.twist.linear.x, 0.3);
         assert_eq!(odom.header.stamp.to_nanos(), 10_600_000_000);
+        // The second scan's own odometry pose, at its stamp, after the ODOM line.
+        let RosOut::Odom(odom) = &all[7].msg else {
+            panic!()
+        };
+        assert_eq!(odom.header.stamp.to_nanos(), 10_700_000_000);
+        assert_eq!(odom.pose.pose.to_planar().0, 1.0);
     }
 
     #[test]
