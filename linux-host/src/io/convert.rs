@@ -14,7 +14,9 @@
 //!   `/tf` too, stamped like the scan and written before it (velocity zero: the line has
 //!   none). A log without `ODOM` lines (mit-csail) has only these; in the others they sit
 //!   between the `ODOM` samples, so a mapper fed in stamp order seeds each scan with the pose
-//!   logged for it rather than one interpolated between `ODOM` samples.
+//!   logged for it rather than one interpolated between `ODOM` samples. The bag gets them for
+//!   every scan ([`CarmenToRos::every_scan_odometry`]); the `.cloilog` writer, whose scan
+//!   records carry that pose themselves, only until the first `ODOM` line.
 //! * The laser's mounting (`base_link` -> `laser`) goes once to `/tf_static` with the first
 //!   scan: `PARAM robot_frontlaser_offset` (an x offset) if it came before, else the offset
 //!   between the first front scan's laser pose and odometry pose.
@@ -61,6 +63,10 @@ pub struct CarmenToRos {
     pub range_max_override: Option<f32>,
     front_laser_max: Option<f32>,
     front_laser_offset: Option<f64>,
+    /// Every front scan's odometry pose becomes an odometry message (else only until the
+    /// first `ODOM` line).
+    pub every_scan_odometry: bool,
+    seen_odom_line: bool,
     tf_static_done: bool,
 }
 
@@ -155,6 +161,7 @@ impl CarmenToRos {
                 _ => {}
             },
             CarmenRecord::Odom(o) => {
+                self.seen_odom_line = true;
                 let odom = odometry(o.stamp_ns, o.pose, o.tv, o.rv);
                 out.push(Stamped {
                     topic: "/tf",
@@ -188,7 +195,7 @@ impl CarmenToRos {
                         }),
                     });
                 }
-                if front {
+                if front && (self.every_scan_odometry || !self.seen_odom_line) {
                     if let Some(pose) = laser.odom_pose {
                         let odom = odometry(laser.stamp_ns, pose, 0.0, 0.0);
                         out.push(Stamped {
@@ -240,7 +247,10 @@ pub fn carmen_to_bag(
 ) -> Result<ConvertReport> {
     let mut reader = CarmenReader::open(input, strict)?;
     let mut bag = BagWriter::create(output)?;
-    let mut conv = CarmenToRos::new(range_max);
+    let mut conv = CarmenToRos {
+        every_scan_odometry: true,
+        ..CarmenToRos::new(range_max)
+    };
     let mut report = ConvertReport::default();
     for record in reader.by_ref() {
         for out in conv.convert(&record?) {
@@ -276,7 +286,10 @@ mod tests {
 FLASER 3 1.0 2.0 81.83 1.1 2.0 0.0 1.0 2.0 0.0 10.5 h 0\n\
 ODOM 1.0 2.0 0.0 0.3 0.1 0.0 10.6 h 0\n\
 FLASER 3 1.0 2.0 3.0 1.1 2.0 0.0 1.0 2.0 0.0 10.7 h 0\n";
-        let mut conv = CarmenToRos::new(None);
+        let mut conv = CarmenToRos {
+            every_scan_odometry: true,
+            ..CarmenToRos::new(None)
+        };
         let mut all = Vec::new();
         for rec in reader_from_bytes(log.into(), "m.clf", true) {
             all.extend(conv.convert(&rec.unwrap()));
