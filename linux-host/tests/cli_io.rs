@@ -40,7 +40,8 @@ fn convert_bz2_log_to_bag_and_bag_to_tum() {
     let (ok, v, stderr) = cloi(&["convert".as_ref(), log.as_os_str(), bag.as_os_str()]);
     assert!(ok, "{stderr}");
     assert_eq!(v["scans"], 2);
-    assert_eq!(v["odometry"], 3);
+    // Three ODOM lines and the odometry pose of each of the two scans.
+    assert_eq!(v["odometry"], 5);
     assert_eq!(v["unknown_lines"]["WEIRD"], 1);
     // Unknown line types are reported once.
     assert_eq!(stderr.matches("WEIRD").count(), 1, "{stderr}");
@@ -48,14 +49,14 @@ fn convert_bz2_log_to_bag_and_bag_to_tum() {
     let tum = dir.path().join("odom.tum");
     let (ok, v, stderr) = cloi(&["convert".as_ref(), bag.as_os_str(), tum.as_os_str()]);
     assert!(ok, "{stderr}");
-    assert_eq!(v["odometry"]["poses"], 3);
+    assert_eq!(v["odometry"]["poses"], 5);
     assert_eq!(v["odometry"]["path_length_m"], 2.0);
     assert_eq!(v["scans"], 2);
     let text = std::fs::read_to_string(&tum).unwrap();
-    assert_eq!(text.lines().count(), 4);
+    assert_eq!(text.lines().count(), 6);
     assert!(text
         .lines()
-        .nth(3)
+        .nth(5)
         .unwrap()
         .starts_with("100.200000000 2.000000000 0.0"));
 
@@ -73,7 +74,8 @@ fn truncated_log_warns_or_fails_with_strict() {
     let (ok, v, stderr) = cloi(&["convert".as_ref(), log.as_os_str(), bag.as_os_str()]);
     assert!(ok, "{stderr}");
     assert_eq!(v["truncated"], true);
-    assert_eq!(v["odometry"], 2);
+    // Two ODOM lines and the two scans' odometry poses.
+    assert_eq!(v["odometry"], 4);
     assert!(stderr.contains("cut.clf:7:"), "{stderr}");
     let (ok, _, stderr) = cloi(&[
         "convert".as_ref(),

@@ -55,8 +55,9 @@ fn shared_logs_round_trip_through_mcap() {
                     assert_eq!(s.header.stamp.to_nanos(), lasers[si].stamp_ns);
                     si += 1;
                 }
-                // fr079 also gets one odometry message from its first scan (before its first
-                // ODOM line); only messages from ODOM lines are compared.
+                // Every scan's own odometry pose is an odometry message too (stamped like the
+                // scan; no log has one at the stamp of an ODOM line); only messages from ODOM
+                // lines are compared.
                 SensorMsg::Odom(o)
                     if oi < odom_lines.len()
                         && o.header.stamp.to_nanos() == odom_lines[oi].stamp_ns =>

@@ -2,12 +2,14 @@
 //! streamed from the host through semihosting.
 //!
 //! The events are fed exactly as `cloi map --deterministic` feeds them (`Driver::feed` and
-//! `drive` in `linux-host/src/map/run.rs`): odometry records are pushed until the first scan
-//! that carries its own odometry pose, from then on the scan's pose is pushed at the scan's
-//! stamp instead; gyro records are pushed as they come; every scan goes to
-//! [`Mapper::push_scan`] with `deadline_passed = false`, followed by one back-end step of
-//! [`BACKEND_ITERATIONS_PER_SCAN`] Gauss-Newton iterations. At the end an optimization is
-//! requested and the back-end runs until it is idle, as on the host.
+//! `drive` in `linux-host/src/map/run.rs`), through the core's [`Feeder`]: odometry records
+//! are pushed until the first scan that carries its own odometry pose, from then on the
+//! scan's pose is pushed at the scan's stamp instead; gyro records are pushed as they come; a
+//! scan that odometry does not cover yet waits in the feeder's queue ([`SCAN_SLOTS`]), and
+//! every scan the feeder pushes to [`Mapper::push_scan`] (with `deadline_passed = false`) is
+//! followed by one back-end step of [`BACKEND_ITERATIONS_PER_SCAN`] Gauss-Newton iterations.
+//! At the end of the log the held scans are pushed, an optimization is requested and the
+//! back-end runs until it is idle, as on the host.
 //!
 //! The resources ([`HomeResources`], about 10.9 MB) are one static; nothing is allocated.
 //! The A9 global timer (under `-icount shift=0`) counts the instructions of every call. The
@@ -29,15 +31,17 @@
 use core::fmt::Write as _;
 
 use cloi_core::frontend::BeamGeometry;
-use cloi_core::mapper::{BackendStep, Feeder, Mapper, MapperConfig, Probe, ScanInput, Section};
+use cloi_core::mapper::sync::SYNC_SLOTS;
+use cloi_core::mapper::{
+    BackendStep, Feeder, Mapper, MapperConfig, Probe, Pushed, ScanInput, ScanSlots, Section,
+};
 use cloi_core::profile::HomeResources;
 use cloi_core::sensor::log::{LogReader, LogRecord, MAX_BEAMS, MIN_READER_BUFFER};
 use semihosting::fs::File;
 use semihosting::println;
 
-use crate::semihost_io::{c_path, ChunkedFile, OutBuffer, CHUNK};
+use crate::replay::{c_path, quantile, ChunkedFile, OutBuffer, CHUNK, MAX_SCANS};
 use crate::statics::TakeOnce;
-use crate::stats::{quantile, MAX_SCANS};
 use crate::timer;
 
 /// Back-end iterations after every scan (`cloi map --backend-iterations`, default 5).
@@ -57,15 +61,45 @@ pub struct State {
     /// Decoded ranges of the current scan.
     ranges: &'static mut [f32; MAX_BEAMS],
     /// How events reach the mapper: the same `Feeder` as `cloi map` (odometry on scans, stamps
-    /// in file order, shortest range).
-    feeder: Feeder,
+    /// in file order, scans held until odometry covers them, shortest range).
+    feeder: Feeder<'static>,
 }
 
-/// What one record did, with the instructions of each call.
+/// Scans one record can push: the one it brings or the oldest held one it evicts, then every
+/// held one that the record's data releases.
+pub const MAX_PUSHED: usize = SYNC_SLOTS + 1;
+
+/// What one record did: the instructions of its sensor push and one [`ScanCost`] per scan the
+/// feeder pushed to the mapper because of it (in push order).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct EventCost {
     /// The record was a scan.
     pub scan: bool,
+    /// Instructions of odometry and gyro pushes.
+    pub sensors: u64,
+    /// The scans pushed, `pushed[..count]`.
+    pub pushed: [ScanCost; MAX_PUSHED],
+    /// Scans pushed.
+    pub count: usize,
+}
+
+impl EventCost {
+    /// The scans pushed, in order.
+    pub fn scans(&self) -> &[ScanCost] {
+        self.pushed.get(..self.count).unwrap_or(&[])
+    }
+
+    fn add(&mut self, cost: ScanCost) {
+        if let Some(slot) = self.pushed.get_mut(self.count) {
+            *slot = cost;
+            self.count += 1;
+        }
+    }
+}
+
+/// What one scan pushed to the mapper did, with the instructions of each call.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct ScanCost {
     /// The scan was accepted: its real-time output.
     pub output: Option<cloi_core::mapper::FrameOutput>,
     /// The scan's own stamp (the mapper's may have been moved forward in file order).
@@ -76,8 +110,6 @@ pub struct EventCost {
     pub backend: u64,
     /// The back-end step had nothing to do.
     pub backend_idle: bool,
-    /// Instructions of odometry and gyro pushes.
-    pub sensors: u64,
     /// Instructions of each part of `push_scan`, indexed by [`section_index`]: front-end,
     /// GPE, keyframe, loop search (zero for a part that did not run).
     pub sections: [u64; 4],
@@ -126,9 +158,10 @@ fn measure<T>(f: impl FnOnce() -> T) -> (T, u64) {
 }
 
 /// The one per-record step of the firmware's main loop: the host driver's `feed`, then the
-/// deterministic schedule's back-end step after a scan.
+/// deterministic schedule's back-end step after every scan pushed.
 pub fn process_event(state: &mut State, record: &LogRecord<'_>) -> EventCost {
     let mut cost = EventCost::default();
+    let mut probe = SectionTimer::default();
     match record {
         LogRecord::Odometry(o) => {
             let (mapper, feeder) = (&mut state.mapper, &mut state.feeder);
@@ -142,7 +175,6 @@ pub fn process_event(state: &mut State, record: &LogRecord<'_>) -> EventCost {
         }
         LogRecord::Scan(s) => {
             cost.scan = true;
-            cost.stamp = s.meta.stamp.as_nanos();
             // The decoder checked the beam count against MAX_BEAMS, so this cannot fail.
             let ranges = s.ranges_into(&mut state.ranges[..]).unwrap_or(&[]);
             let g = s.meta.geometry;
@@ -159,23 +191,62 @@ pub fn process_event(state: &mut State, record: &LogRecord<'_>) -> EventCost {
             };
             let (mapper, feeder) = (&mut state.mapper, &mut state.feeder);
             // The scan's own odometry pose (if any) is pushed inside, as on the host.
-            let mut probe = SectionTimer::default();
-            let (result, n) =
+            let (pushed, n) =
                 measure(|| feeder.scan_probed(mapper, &input, s.meta.odom, false, &mut probe));
-            cost.push_scan = n;
-            cost.sections = probe.counts;
-            cost.loop_search = probe.loop_search;
-            cost.output = result.ok();
-            let (step, n) = measure(|| mapper.step_backend(BACKEND_ITERATIONS_PER_SCAN));
-            cost.backend = n;
-            cost.backend_idle = step == BackendStep::Idle;
+            if let Some(p) = pushed {
+                cost.add(after_push(&mut state.mapper, p, n, &probe));
+            }
         }
         LogRecord::Unknown { .. } => {}
     }
+    release(state, &mut cost, false);
     cost
 }
 
+/// At the end of the log: pushes the scans still held, as the host does.
+pub fn finish_input(state: &mut State) -> EventCost {
+    let mut cost = EventCost::default();
+    release(state, &mut cost, true);
+    cost
+}
+
+/// Pushes the held scans the feeder releases (all of them at the end of the log).
+fn release(state: &mut State, cost: &mut EventCost, at_end: bool) {
+    while cost.count < MAX_PUSHED {
+        let mut probe = SectionTimer::default();
+        let (mapper, feeder) = (&mut state.mapper, &mut state.feeder);
+        let (pushed, n) = measure(|| {
+            if at_end {
+                feeder.finish_probed(mapper, false, &mut probe)
+            } else {
+                feeder.next_probed(mapper, false, &mut probe)
+            }
+        });
+        let Some(p) = pushed else {
+            break;
+        };
+        cost.add(after_push(&mut state.mapper, p, n, &probe));
+    }
+}
+
+/// The cost of one pushed scan (`push_scan` instructions `n`), with the back-end step after
+/// it.
+fn after_push(mapper: &mut Mapper<'_>, p: Pushed, n: u64, probe: &SectionTimer) -> ScanCost {
+    let (step, backend) = measure(|| mapper.step_backend(BACKEND_ITERATIONS_PER_SCAN));
+    ScanCost {
+        output: p.result.ok(),
+        stamp: p.stamp,
+        push_scan: n,
+        backend,
+        backend_idle: step == BackendStep::Idle,
+        sections: probe.counts,
+        loop_search: probe.loop_search,
+    }
+}
+
 static RESOURCES: TakeOnce<HomeResources> = TakeOnce::new(HomeResources::new());
+/// The scans the feeder holds until odometry covers them (about 35 kB).
+static SCAN_SLOTS: TakeOnce<ScanSlots> = TakeOnce::new(ScanSlots::new());
 static RANGES: TakeOnce<[f32; MAX_BEAMS]> = TakeOnce::new([0.0; MAX_BEAMS]);
 static READ_BUFFER: TakeOnce<[u8; MIN_READER_BUFFER + CHUNK]> =
     TakeOnce::new([0; MIN_READER_BUFFER + CHUNK]);
@@ -241,7 +312,7 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
     ) else {
         return Err("mapper started twice");
     };
-    let Some(section_counts) = SECTION_COUNTS.take() else {
+    let (Some(section_counts), Some(held)) = (SECTION_COUNTS.take(), SCAN_SLOTS.take()) else {
         return Err("mapper started twice");
     };
     let config = home_config();
@@ -255,7 +326,7 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
     let mut state = State {
         mapper,
         ranges,
-        feeder: Feeder::new(true, config.min_range),
+        feeder: Feeder::new(true, config.min_range, held),
     };
 
     let mut path = [0u8; 512];
@@ -277,63 +348,67 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
     loop {
         let (next, n) = measure(|| reader.next_record());
         decode_total += n;
-        let record = match next {
-            Ok(Some(record)) => record,
-            Ok(None) => break,
+        let (cost, ended) = match next {
+            Ok(Some(record)) => {
+                records += 1;
+                (process_event(&mut state, &record), false)
+            }
+            // The end of the log releases the scans still waiting for odometry.
+            Ok(None) => (finish_input(&mut state), true),
             Err(e) => {
                 println!("mapper_error=\"{e}\"");
                 return Err("the log is damaged or unreadable");
             }
         };
-        records += 1;
-        let cost = process_event(&mut state, &record);
         sensors_total += cost.sensors;
-        if !cost.scan {
-            continue;
-        }
-        if let (Some(s), Some(b), Some(f), Some(parts)) = (
-            scan_counts.get_mut(scans),
-            backend_counts.get_mut(scans),
-            flags.get_mut(scans),
-            section_counts.get_mut(scans),
-        ) {
-            *s = u32::try_from(cost.push_scan).unwrap_or(u32::MAX);
-            for (p, &c) in parts.iter_mut().zip(&cost.sections) {
-                *p = u32::try_from(c).unwrap_or(u32::MAX);
+        for cost in cost.scans() {
+            if let (Some(s), Some(b), Some(f), Some(parts)) = (
+                scan_counts.get_mut(scans),
+                backend_counts.get_mut(scans),
+                flags.get_mut(scans),
+                section_counts.get_mut(scans),
+            ) {
+                *s = u32::try_from(cost.push_scan).unwrap_or(u32::MAX);
+                for (p, &c) in parts.iter_mut().zip(&cost.sections) {
+                    *p = u32::try_from(c).unwrap_or(u32::MAX);
+                }
+                *b = u32::try_from(cost.backend).unwrap_or(u32::MAX);
+                *f = if cost.backend_idle {
+                    0
+                } else {
+                    FLAG_BACKEND_WORKED
+                };
+                if cost.loop_search {
+                    *f |= FLAG_LOOP_SEARCH;
+                }
+                if let Some(o) = &cost.output {
+                    *f |= FLAG_ACCEPTED | if o.keyframe { FLAG_KEYFRAME } else { 0 };
+                }
             }
-            *b = u32::try_from(cost.backend).unwrap_or(u32::MAX);
-            *f = if cost.backend_idle {
-                0
-            } else {
-                FLAG_BACKEND_WORKED
+            scans += 1;
+            let Some(o) = cost.output else {
+                rejected += 1;
+                continue;
             };
-            if cost.loop_search {
-                *f |= FLAG_LOOP_SEARCH;
+            if out.len + 256 > out.bytes.len() {
+                out.flush_to(&mut out_file)
+                    .map_err(|_| "cannot write the output (SYS_WRITE)")?;
             }
-            if let Some(o) = &cost.output {
-                *f |= FLAG_ACCEPTED | if o.keyframe { FLAG_KEYFRAME } else { 0 };
-            }
+            let _ = writeln!(
+                out,
+                "scan {} {:e} {:e} {:e} {} {} {}",
+                cost.stamp,
+                o.pose.x,
+                o.pose.y,
+                o.pose.theta,
+                u8::from(o.keyframe),
+                cost.push_scan,
+                cost.backend
+            );
         }
-        scans += 1;
-        let Some(o) = cost.output else {
-            rejected += 1;
-            continue;
-        };
-        if out.len + 256 > out.bytes.len() {
-            out.flush_to(&mut out_file)
-                .map_err(|_| "cannot write the output (SYS_WRITE)")?;
+        if ended {
+            break;
         }
-        let _ = writeln!(
-            out,
-            "scan {} {:e} {:e} {:e} {} {} {}",
-            cost.stamp,
-            o.pose.x,
-            o.pose.y,
-            o.pose.theta,
-            u8::from(o.keyframe),
-            cost.push_scan,
-            cost.backend
-        );
     }
 
     // Settle the back-end as the host does: one final optimization over everything.

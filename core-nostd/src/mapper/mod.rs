@@ -58,7 +58,7 @@ use crate::solver::SolverBuffers;
 pub use crate::backend::schedule::BackendStep;
 pub use crate::gpe;
 pub use config::{BackendConfig, FrontendNoise, LoopConfig, MapperConfig};
-pub use feed::Feeder;
+pub use feed::{Feeder, Pushed, ScanSlots};
 pub use frames::NodeMeta;
 pub use gpe::GpeConfig;
 pub use submaps::SubmapMeta;

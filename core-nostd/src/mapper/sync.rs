@@ -6,12 +6,13 @@
 //! that follows `t`. Pushed at once, such a scan could only be seeded by extrapolating the
 //! last odometry, which fails after any gap longer than the extrapolation limit. The gate
 //! below instead decides, per scan, when it may go to the mapper:
-//! * **covered**: the newest wheel sample (and the newest gyro sample, once the input has a
-//!   gyro stream) is at or after the end of the scan's sweep, so the seed is an
-//!   interpolation;
+//! * **covered**: the newest wheel sample and the newest gyro sample are at or after the end
+//!   of the scan's sweep, so the seed is an interpolation. A stream counts only once the input
+//!   has shown it has one (a sample arrived): a LiDAR-only input, or the scans before the
+//!   first odometry sample, never wait;
 //! * **waited long enough**: the input's data time (the newest stamp seen on any stream) has
 //!   run `wait_ns` past the end of the sweep without cover; the mapper then seeds as it can
-//!   (counted);
+//!   (counted). Drivers use [`SYNC_WAIT_NS`];
 //! * **no room**: a new scan finds all `SYNC_SLOTS` taken; the oldest goes first (counted).
 //!
 //! Scans leave in the order they came. The gate keeps only stamps: the caller (host or
@@ -23,6 +24,13 @@ use heapless::Deque;
 
 /// Scans the gate holds at most (the caller's queue needs room for as many).
 pub const SYNC_SLOTS: usize = 8;
+
+/// The wait drivers give a scan for odometry to cover it, in data time: five periods of a
+/// 10 Hz wheel odometry, the slowest rate a service robot's base reports (ROS base drivers
+/// publish at 20 to 50 Hz, the CARMEN robots logged about 10 Hz). In stamp order the covering
+/// sample normally comes within one period; a stream silent for five has dropped samples,
+/// and waiting longer would only delay the real-time pose of every scan behind this one.
+pub const SYNC_WAIT_NS: i64 = 500_000_000;
 
 /// What the caller does with a scan it offers.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -56,6 +64,8 @@ pub struct SyncStats {
     pub waited: u64,
     /// Held scans released without cover because the queue was full.
     pub evicted: u64,
+    /// Scans that had to wait but had more beams than a held slot takes (rejected).
+    pub too_long: u64,
 }
 
 /// The gate's state: coverage of the motion streams and the stamps of the held scans.
@@ -88,6 +98,7 @@ impl ScanGate {
                 held: 0,
                 waited: 0,
                 evicted: 0,
+                too_long: 0,
             },
         }
     }
@@ -118,19 +129,26 @@ impl ScanGate {
         if end == i64::MIN {
             return true;
         }
-        let wheel = self.wheel.is_some_and(|w| w >= end);
+        let wheel = self.wheel.is_none_or(|w| w >= end);
         let gyro = self.gyro.is_none_or(|g| g >= end);
         wheel && gyro
+    }
+
+    /// Whether a scan stamped `stamp` ns whose sweep ends at `end` ns may go to the mapper at
+    /// once (nothing older held, and covered or carrying its own odometry); the data time
+    /// advances either way. [`ScanGate::admit`] gives the same answer as [`Admit::Now`].
+    pub fn passes(&mut self, stamp: i64, end: i64, own_odometry: bool) -> bool {
+        self.data_time = later(self.data_time, stamp);
+        self.held.is_empty() && (own_odometry || self.covered(end.max(stamp)))
     }
 
     /// A scan stamped `stamp` ns whose sweep ends at `end` ns arrived; `own_odometry` when it
     /// carries the odometry pose at its time.
     pub fn admit(&mut self, stamp: i64, end: i64, own_odometry: bool) -> Admit {
-        let end = end.max(stamp);
-        self.data_time = later(self.data_time, stamp);
-        if self.held.is_empty() && (own_odometry || self.covered(end)) {
+        if self.passes(stamp, end, own_odometry) {
             return Admit::Now;
         }
+        let end = end.max(stamp);
         // A scan with its own odometry needs no cover, only its turn.
         let end = if own_odometry { i64::MIN } else { end };
         let admit = if self.held.is_full() {
@@ -195,6 +213,18 @@ mod tests {
     }
 
     #[test]
+    fn streams_not_seen_yet_do_not_hold_scans() {
+        let mut g = ScanGate::new(500 * MS);
+        // No motion stream yet (a LiDAR-only input, or scans before the first sample).
+        assert!(g.passes(0, 0, false));
+        assert_eq!(g.admit(10 * MS, 10 * MS, false), Admit::Now);
+        g.wheel(5 * MS);
+        assert!(!g.passes(20 * MS, 20 * MS, false));
+        assert_eq!(g.admit(20 * MS, 20 * MS, false), Admit::Held);
+        assert_eq!(g.stats.held, 1);
+    }
+
+    #[test]
     fn gyro_must_cover_too_once_it_exists() {
         let mut g = ScanGate::new(500 * MS);
         g.gyro(0);
@@ -219,6 +249,7 @@ mod tests {
     #[test]
     fn bounded_wait_in_data_time() {
         let mut g = ScanGate::new(100 * MS);
+        g.wheel(-MS);
         assert_eq!(g.admit(0, 0, false), Admit::Held);
         assert_eq!(g.admit(50 * MS, 50 * MS, false), Admit::Held);
         assert_eq!(g.release(), None);
@@ -234,6 +265,7 @@ mod tests {
     #[test]
     fn full_queue_releases_the_oldest_in_order() {
         let mut g = ScanGate::new(i64::MAX);
+        g.wheel(-MS);
         for k in 0..SYNC_SLOTS as i64 {
             assert_eq!(g.admit(k * MS, k * MS, false), Admit::Held);
         }
@@ -248,6 +280,7 @@ mod tests {
     #[test]
     fn scan_with_its_own_odometry_never_waits_unless_behind_others() {
         let mut g = ScanGate::new(500 * MS);
+        g.wheel(0);
         assert_eq!(g.admit(10 * MS, 10 * MS, true), Admit::Now);
         assert_eq!(g.admit(20 * MS, 20 * MS, false), Admit::Held);
         assert_eq!(g.admit(30 * MS, 30 * MS, true), Admit::Held);

@@ -6,6 +6,7 @@ extern crate std;
 use std::boxed::Box;
 use std::vec::Vec;
 
+use super::sync::{SYNC_SLOTS, SYNC_WAIT_NS};
 use super::*;
 use crate::frontend::GridParams;
 use crate::profile::MapperResources;
@@ -559,5 +560,236 @@ fn a_full_pool_is_pruned_and_mapping_goes_on() {
         }
         // Submaps still have their anchors.
         assert!(mapper.submaps().count() >= 3);
+    });
+}
+
+// Feeding in stamp order (bags, live drivers): the Feeder holds scans until odometry covers
+// them.
+
+const MS: i64 = 1_000_000;
+
+/// A scan of the world from `pose` stamped `t`.
+fn held_input(ranges: &[f32], t: i64) -> ScanInput<'_> {
+    ScanInput {
+        stamp: t,
+        ranges,
+        geometry: geometry(),
+        mounting: Se2::IDENTITY,
+    }
+}
+
+#[test]
+fn a_scan_before_its_odometry_is_held_then_released_covered() {
+    with_stack(|| {
+        let mut res: Box<TestResources> = Box::default();
+        let mut mapper = res.mapper(config()).expect("resources fit");
+        let mut slots = Box::new(ScanSlots::new());
+        let mut feeder = Feeder::new(true, 0.0, &mut slots);
+        let ranges = scan_at(&path()[0]);
+        feeder
+            .odometry(&mut mapper, 0, Se2::IDENTITY)
+            .expect("odometry");
+        // The first scan: odometry at 0 does not cover 50 ms, so it waits.
+        assert_eq!(
+            feeder.scan(&mut mapper, &held_input(&ranges, 50 * MS), None, false),
+            None
+        );
+        assert_eq!(feeder.held(), 1);
+        assert_eq!(feeder.next(&mut mapper, false), None);
+        assert_eq!(mapper.stats().scans, 0);
+        // The sample after it arrives: the scan goes, with its own stamp.
+        feeder
+            .odometry(&mut mapper, 100 * MS, Se2::new(0.01, 0.0, 0.0))
+            .expect("odometry");
+        let p = feeder.next(&mut mapper, false).expect("released");
+        assert_eq!(p.stamp, 50 * MS);
+        assert_eq!(p.result.map(|o| o.stamp), Ok(50 * MS));
+        assert_eq!(feeder.next(&mut mapper, false), None);
+        assert_eq!(feeder.held(), 0);
+        // Covered on arrival: straight through.
+        let p = feeder
+            .scan(&mut mapper, &held_input(&ranges, 90 * MS), None, false)
+            .expect("pushed at once");
+        assert_eq!(p.stamp, 90 * MS);
+        assert!(p.result.is_ok());
+        let s = feeder.sync_stats();
+        assert_eq!((s.held, s.waited, s.evicted, s.too_long), (1, 0, 0, 0));
+        assert_eq!(mapper.stats().scans, 2);
+        assert_eq!(mapper.stats().odometry_gaps, 0);
+    });
+}
+
+/// Odometry at 5 Hz and scans at 10 Hz between its samples, in stamp order as a bag delivers
+/// them: three scans in four come more than the 100 ms extrapolation limit after the last
+/// sample. Gives the outputs and the mapper's counters, fed through the Feeder or straight.
+fn bag_order_run(gated: bool) -> (Vec<FrameOutput>, Vec<Se2>, MapperStats, u64) {
+    let truth = path();
+    let mut res: Box<TestResources> = Box::default();
+    let mut mapper = res.mapper(config()).expect("resources fit");
+    let mut slots = Box::new(ScanSlots::new());
+    let mut feeder = Feeder::new(true, 0.0, &mut slots);
+    let mut odom = Se2::IDENTITY;
+    let (mut outputs, mut scanned) = (Vec::new(), Vec::new());
+    let take = |p: Option<Pushed>, outputs: &mut Vec<FrameOutput>, m: &mut Mapper<'_>| {
+        if let Some(p) = p {
+            outputs.push(p.result.expect("scan accepted"));
+            m.step_backend(5);
+        }
+    };
+    // The path's poses at 20 Hz: odometry at every fourth, a scan at every odd one.
+    for (j, p) in truth.iter().enumerate() {
+        if j > 0 {
+            let inc = truth[j - 1].between(p);
+            let d = libm::hypot(inc.x, inc.y);
+            odom = odom.compose(&Se2::new(inc.x, inc.y, inc.theta + d * 0.035));
+        }
+        let t = 1_000_000_000 + j as i64 * 50 * MS;
+        if j % 4 == 0 {
+            if gated {
+                feeder.odometry(&mut mapper, t, odom).expect("odometry");
+            } else {
+                mapper.push_odometry(t, odom).expect("odometry");
+            }
+        } else if j % 2 == 1 {
+            let ranges = scan_at(p);
+            let input = held_input(&ranges, t);
+            scanned.push(*p);
+            if gated {
+                let pushed = feeder.scan(&mut mapper, &input, None, false);
+                take(pushed, &mut outputs, &mut mapper);
+            } else {
+                let out = mapper.push_scan(&input, false).expect("scan accepted");
+                take(
+                    Some(Pushed {
+                        stamp: t,
+                        result: Ok(out),
+                    }),
+                    &mut outputs,
+                    &mut mapper,
+                );
+            }
+        }
+        while let Some(p) = feeder.next(&mut mapper, false) {
+            take(Some(p), &mut outputs, &mut mapper);
+        }
+    }
+    // The robot stands still at the end; its odometry says so once more after the last scan.
+    let t = 1_000_000_000 + truth.len() as i64 * 50 * MS;
+    if gated {
+        feeder.odometry(&mut mapper, t, odom).expect("odometry");
+        while let Some(p) = feeder.next(&mut mapper, false) {
+            take(Some(p), &mut outputs, &mut mapper);
+        }
+    }
+    assert_eq!(feeder.held(), 0);
+    while let Some(p) = feeder.finish(&mut mapper, false) {
+        take(Some(p), &mut outputs, &mut mapper);
+    }
+    (outputs, scanned, mapper.stats(), feeder.sync_stats().held)
+}
+
+#[test]
+fn scans_in_stamp_order_are_seeded_without_odometry_gaps() {
+    with_stack(|| {
+        // Straight to the mapper, most scans find no odometry to seed them.
+        let (_, _, direct, _) = bag_order_run(false);
+        assert!(direct.odometry_gaps > direct.scans / 2, "{direct:?}");
+        let (outputs, truth, s, held) = bag_order_run(true);
+        assert_eq!(s.scans as usize, truth.len(), "{s:?}");
+        assert_eq!(outputs.len(), truth.len());
+        assert_eq!(s.odometry_gaps, 0, "{s:?}");
+        // Every scan comes before the odometry sample after it, so every one waited, and all
+        // were covered in the end.
+        assert_eq!(held as usize, truth.len());
+        // In arrival order, with their own stamps.
+        assert!(outputs.windows(2).all(|w| w[0].stamp < w[1].stamp));
+        // The same local consistency as the interleaved run of the two-laps test.
+        let rt: Vec<Se2> = outputs.iter().map(|o| o.pose).collect();
+        assert!(relative_error(&rt, &truth, 10) < 0.08);
+    });
+}
+
+#[test]
+fn a_full_queue_evicts_the_oldest_and_counts_it() {
+    with_stack(|| {
+        let mut res: Box<TestResources> = Box::default();
+        let mut mapper = res.mapper(config()).expect("resources fit");
+        let mut slots = Box::new(ScanSlots::new());
+        let mut feeder = Feeder::new(true, 0.0, &mut slots);
+        let ranges = scan_at(&path()[0]);
+        feeder
+            .odometry(&mut mapper, 0, Se2::IDENTITY)
+            .expect("odometry");
+        // SYNC_SLOTS scans 10 ms apart, well inside the wait: all held.
+        for k in 1..=SYNC_SLOTS as i64 {
+            let p = feeder.scan(&mut mapper, &held_input(&ranges, k * 10 * MS), None, false);
+            assert_eq!(p, None);
+            assert_eq!(feeder.next(&mut mapper, false), None);
+        }
+        assert_eq!(feeder.held(), SYNC_SLOTS);
+        // One more: the oldest goes now, uncovered, and is counted.
+        let t = (SYNC_SLOTS as i64 + 1) * 10 * MS;
+        let p = feeder
+            .scan(&mut mapper, &held_input(&ranges, t), None, false)
+            .expect("the oldest is pushed");
+        assert_eq!(p.stamp, 10 * MS);
+        assert!(p.result.is_ok());
+        assert_eq!(feeder.held(), SYNC_SLOTS);
+        assert_eq!(feeder.sync_stats().evicted, 1);
+        // A scan that must wait but has more beams than a slot is rejected and counted.
+        let long = [1.0f32; crate::frontend::scan::MAX_POINTS + 1];
+        let p = feeder
+            .scan(&mut mapper, &held_input(&long, t + 10 * MS), None, false)
+            .expect("rejected at once");
+        assert_eq!(p.result, Err(MapperError::TooManyBeams));
+        assert_eq!(feeder.sync_stats().too_long, 1);
+        // The end of the input pushes the rest, oldest first.
+        let mut stamps = Vec::new();
+        while let Some(p) = feeder.finish(&mut mapper, false) {
+            stamps.push(p.stamp);
+        }
+        let expected: Vec<i64> = (2..=SYNC_SLOTS as i64 + 1).map(|k| k * 10 * MS).collect();
+        assert_eq!(stamps, expected);
+        assert_eq!(feeder.held(), 0);
+        let s = feeder.sync_stats();
+        assert_eq!((s.held, s.waited, s.evicted), (SYNC_SLOTS as u64 + 1, 0, 1));
+    });
+}
+
+#[test]
+fn a_scan_whose_odometry_never_comes_goes_after_the_wait() {
+    with_stack(|| {
+        let mut res: Box<TestResources> = Box::default();
+        let mut mapper = res.mapper(config()).expect("resources fit");
+        let mut slots = Box::new(ScanSlots::new());
+        let mut feeder = Feeder::new(true, 0.0, &mut slots);
+        let ranges = scan_at(&path()[0]);
+        feeder
+            .odometry(&mut mapper, 0, Se2::IDENTITY)
+            .expect("odometry");
+        assert_eq!(
+            feeder.scan(&mut mapper, &held_input(&ranges, 10 * MS), None, false),
+            None
+        );
+        // Data time reaches the wait exactly: not yet.
+        let at_wait = 10 * MS + SYNC_WAIT_NS;
+        assert_eq!(
+            feeder.scan(&mut mapper, &held_input(&ranges, at_wait), None, false),
+            None
+        );
+        assert_eq!(feeder.next(&mut mapper, false), None);
+        // Past it: the first goes without cover (counted), the second still waits.
+        let past = at_wait + MS;
+        assert_eq!(
+            feeder.scan(&mut mapper, &held_input(&ranges, past), None, false),
+            None
+        );
+        let p = feeder
+            .next(&mut mapper, false)
+            .expect("released by the wait");
+        assert_eq!(p.stamp, 10 * MS);
+        assert_eq!(feeder.next(&mut mapper, false), None);
+        assert_eq!(feeder.held(), 2);
+        assert_eq!(feeder.sync_stats().waited, 1);
     });
 }

@@ -106,6 +106,9 @@ pub enum MapperError {
     EmptyScan,
     /// A sample with a bad order or value (rejected, counted).
     BadSample,
+    /// A scan that had to wait for odometry has more beams than a held slot takes
+    /// ([`MAX_POINTS`](crate::frontend::scan::MAX_POINTS); rejected, counted by the feeder).
+    TooManyBeams,
 }
 
 impl core::fmt::Display for MapperError {
@@ -116,6 +119,9 @@ impl core::fmt::Display for MapperError {
             MapperError::OutOfOrder => f.write_str("scan time stamp not after the previous one"),
             MapperError::EmptyScan => f.write_str("scan without usable points"),
             MapperError::BadSample => f.write_str("odometry or gyro sample rejected"),
+            MapperError::TooManyBeams => {
+                f.write_str("scan waiting for odometry has more beams than a held slot takes")
+            }
         }
     }
 }

@@ -8,8 +8,15 @@
 //!   `PARAM robot_front_laser_max`, else 80 m, so the logs' "no return" value 81.83 m lies
 //!   beyond it.
 //! * `ODOM` -> `nav_msgs/msg/Odometry` on `/odom` (`odom` -> `base_link`, velocity `tv`, `rv`)
-//!   and the same transform on `/tf`. A log without `ODOM` lines (mit-csail) gets its odometry
-//!   from the odometry pose inside the laser lines, until the first `ODOM` line appears.
+//!   and the same transform on `/tf`.
+//! * The odometry pose inside a front or robot laser line (`FLASER`, `ROBOTLASER1`) is the
+//!   robot's odometry at the scan's own time, as the robot recorded it: it goes to `/odom` and
+//!   `/tf` too, stamped like the scan and written before it (velocity zero: the line has
+//!   none). A log without `ODOM` lines (mit-csail) has only these; in the others they sit
+//!   between the `ODOM` samples, so a mapper fed in stamp order seeds each scan with the pose
+//!   logged for it rather than one interpolated between `ODOM` samples. The bag gets them for
+//!   every scan ([`CarmenToRos::every_scan_odometry`]); the `.cloilog` writer, whose scan
+//!   records carry that pose themselves, only until the first `ODOM` line.
 //! * The laser's mounting (`base_link` -> `laser`) goes once to `/tf_static` with the first
 //!   scan: `PARAM robot_frontlaser_offset` (an x offset) if it came before, else the offset
 //!   between the first front scan's laser pose and odometry pose.
@@ -56,6 +63,9 @@ pub struct CarmenToRos {
     pub range_max_override: Option<f32>,
     front_laser_max: Option<f32>,
     front_laser_offset: Option<f64>,
+    /// Every front scan's odometry pose becomes an odometry message (else only until the
+    /// first `ODOM` line).
+    pub every_scan_odometry: bool,
     seen_odom_line: bool,
     tf_static_done: bool,
 }
@@ -185,7 +195,7 @@ impl CarmenToRos {
                         }),
                     });
                 }
-                if !self.seen_odom_line && front {
+                if front && (self.every_scan_odometry || !self.seen_odom_line) {
                     if let Some(pose) = laser.odom_pose {
                         let odom = odometry(laser.stamp_ns, pose, 0.0, 0.0);
                         out.push(Stamped {
@@ -237,7 +247,10 @@ pub fn carmen_to_bag(
 ) -> Result<ConvertReport> {
     let mut reader = CarmenReader::open(input, strict)?;
     let mut bag = BagWriter::create(output)?;
-    let mut conv = CarmenToRos::new(range_max);
+    let mut conv = CarmenToRos {
+        every_scan_odometry: true,
+        ..CarmenToRos::new(range_max)
+    };
     let mut report = ConvertReport::default();
     for record in reader.by_ref() {
         for out in conv.convert(&record?) {
@@ -273,7 +286,10 @@ mod tests {
 FLASER 3 1.0 2.0 81.83 1.1 2.0 0.0 1.0 2.0 0.0 10.5 h 0\n\
 ODOM 1.0 2.0 0.0 0.3 0.1 0.0 10.6 h 0\n\
 FLASER 3 1.0 2.0 3.0 1.1 2.0 0.0 1.0 2.0 0.0 10.7 h 0\n";
-        let mut conv = CarmenToRos::new(None);
+        let mut conv = CarmenToRos {
+            every_scan_odometry: true,
+            ..CarmenToRos::new(None)
+        };
         let mut all = Vec::new();
         for rec in reader_from_bytes(log.into(), "m.clf", true) {
             all.extend(conv.convert(&rec.unwrap()));
@@ -286,6 +302,8 @@ FLASER 3 1.0 2.0 3.0 1.1 2.0 0.0 1.0 2.0 0.0 10.7 h 0\n";
                 "/tf",
                 "/odom",
                 "/scan",
+                "/tf",
+                "/odom",
                 "/tf",
                 "/odom",
                 "/scan"
@@ -307,6 +325,12 @@ FLASER 3 1.0 2.0 3.0 1.1 2.0 0.0 1.0 2.0 0.0 10.7 h 0\n";
         };
         assert_eq!(odom.twist.twist.linear.x, 0.3);
         assert_eq!(odom.header.stamp.to_nanos(), 10_600_000_000);
+        // The second scan's own odometry pose, at its stamp, after the ODOM line.
+        let RosOut::Odom(odom) = &all[7].msg else {
+            panic!()
+        };
+        assert_eq!(odom.header.stamp.to_nanos(), 10_700_000_000);
+        assert_eq!(odom.pose.pose.to_planar().0, 1.0);
     }
 
     #[test]

@@ -86,6 +86,9 @@ pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<(
         progress: !quiet,
     };
     let result = run(input, &settings)?;
+    for w in &result.warnings {
+        log::warn!("{w}");
+    }
     if args.json {
         writeln!(out, "{}", serde_json::to_string_pretty(&result.report)?)?;
     }

@@ -21,8 +21,10 @@ use anyhow::{anyhow, bail, Context, Result};
 use cloi_core::frontend::{BeamGeometry, GridParams};
 use cloi_core::geom::Se2;
 use cloi_core::graph::EdgeKind;
+use cloi_core::mapper::sync::{SyncStats, SYNC_SLOTS, SYNC_WAIT_NS};
 use cloi_core::mapper::{
     BackendStep, Feeder, FrameOutput, Mapper, MapperConfig, MapperError, MapperStats, ScanInput,
+    ScanSlots,
 };
 use cloi_core::profile::{AirportResources, HomeResources, MapperResources, OfficeResources};
 use serde_json::json;
@@ -80,6 +82,8 @@ pub struct MapRun {
     pub gpe: Vec<(i64, Se2)>,
     /// The mapper's counters.
     pub stats: MapperStats,
+    /// What the user should know about the run (scans mapped without odometry cover).
+    pub warnings: Vec<String>,
 }
 
 /// Boxed, empty resources of `profile`. They are built on a thread with a stack large enough
@@ -128,7 +132,7 @@ struct ScanRecord {
 }
 
 /// State of the real-time loop shared by both schedules.
-struct Driver {
+struct Driver<'s> {
     records: Vec<ScanRecord>,
     /// Front-end pose of every keyframe by serial (to place scans whose keyframe was pruned).
     keyframe_frontend: Vec<Se2>,
@@ -140,19 +144,34 @@ struct Driver {
     deadline: Duration,
     late: bool,
     /// How events reach the mapper (shared with the firmware).
-    feeder: Feeder,
+    feeder: Feeder<'s>,
 }
 
-impl Driver {
-    fn feed(&mut self, mapper: &mut Mapper<'_>, ev: &SensorEvent, started: Instant) {
-        match ev {
-            SensorEvent::Odometry { t_ns, pose } => {
+/// What the input still owes the mapper: one event, or the scans held at its end.
+enum Feed<'e> {
+    Event(&'e SensorEvent),
+    End,
+}
+
+impl Driver<'_> {
+    /// Feeds one event (or the end of the input) and calls `after_scan` with the data stamp
+    /// of every scan it pushed to the mapper (none, one, or several held ones).
+    fn feed(
+        &mut self,
+        mapper: &mut Mapper<'_>,
+        feed: Feed<'_>,
+        started: Instant,
+        after_scan: &mut dyn FnMut(&mut Mapper<'_>, i64),
+    ) {
+        let mut pushed = None;
+        match feed {
+            Feed::Event(SensorEvent::Odometry { t_ns, pose }) => {
                 let _ = self.feeder.odometry(mapper, *t_ns, *pose);
             }
-            SensorEvent::Gyro { t_ns, yaw_rate } => {
+            Feed::Event(SensorEvent::Gyro { t_ns, yaw_rate }) => {
                 let _ = self.feeder.gyro(mapper, *t_ns, *yaw_rate);
             }
-            SensorEvent::Scan(s) => {
+            Feed::Event(SensorEvent::Scan(s)) => {
                 let input = ScanInput {
                     stamp: s.t_ns,
                     ranges: &s.ranges,
@@ -164,16 +183,38 @@ impl Driver {
                     },
                     mounting: s.laser_offset,
                 };
-                let late = std::mem::take(&mut self.late);
                 let t0 = Instant::now();
-                let result = self.feeder.scan(mapper, &input, s.odom, late);
-                self.scan_us.push(t0.elapsed().as_secs_f64() * 1e6);
-                match result {
-                    Ok(out) => self.accept(mapper, &out, s.t_ns),
-                    Err(_) => self.rejected += 1,
-                }
-                self.late = started.elapsed() > self.deadline;
+                pushed = self
+                    .feeder
+                    .scan(mapper, &input, s.odom, self.late)
+                    .map(|p| (p, t0));
             }
+            Feed::End => {}
+        }
+        let at_end = matches!(feed, Feed::End);
+        loop {
+            let (p, t0) = match pushed.take() {
+                Some(p) => p,
+                None => {
+                    let t0 = Instant::now();
+                    let next = if at_end {
+                        self.feeder.finish(mapper, self.late)
+                    } else {
+                        self.feeder.next(mapper, self.late)
+                    };
+                    match next {
+                        Some(p) => (p, t0),
+                        None => break,
+                    }
+                }
+            };
+            self.scan_us.push(t0.elapsed().as_secs_f64() * 1e6);
+            match p.result {
+                Ok(out) => self.accept(mapper, &out, p.stamp),
+                Err(_) => self.rejected += 1,
+            }
+            self.late = started.elapsed() > self.deadline;
+            after_scan(mapper, p.stamp);
         }
     }
 
@@ -228,6 +269,7 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
 /// What the mapper thread hands back.
 struct Finished {
     stamps_repaired: u64,
+    sync: SyncStats,
     scan_us: Vec<f64>,
     records: Vec<ScanRecord>,
     keyframe_frontend: Vec<Se2>,
@@ -249,6 +291,8 @@ fn drive(
     settings: &MapSettings,
     progress: &MapProgress,
 ) -> Result<Finished> {
+    // The scans waiting for odometry (about 35 kB: on the heap, not the stack).
+    let mut held = Box::new(ScanSlots::new());
     let mut driver = Driver {
         records: Vec::new(),
         keyframe_frontend: Vec::new(),
@@ -261,6 +305,7 @@ fn drive(
         feeder: Feeder::new(
             settings.stamps == StampPolicy::FileOrder,
             mapper.config().min_range,
+            &mut held,
         ),
     };
     let stats_handle = input.stats_handle();
@@ -269,6 +314,16 @@ fn drive(
     let delay_ns = (settings.backend_delay_s * 1e9) as i64;
     if settings.deterministic {
         let mut next_backend = i64::MIN;
+        // The back-end's turn after every scan the mapper took (by the scan's data time).
+        let iterations = settings.backend_iterations_per_scan;
+        let mut step_backend = |m: &mut Mapper<'_>, t_ns: i64| {
+            if delay_ns <= 0 {
+                m.step_backend(iterations);
+            } else if t_ns >= next_backend {
+                next_backend = t_ns + delay_ns;
+                while m.step_backend(iterations) == BackendStep::Working {}
+            }
+        };
         for ev in input {
             let ev = ev?;
             let is_scan = matches!(ev, SensorEvent::Scan(_));
@@ -276,18 +331,15 @@ fn drive(
                 break;
             }
             // No deadline in the deterministic schedule: timing must not change results.
-            driver.feed(&mut mapper, &ev, Instant::now());
+            driver.feed(
+                &mut mapper,
+                Feed::Event(&ev),
+                Instant::now(),
+                &mut step_backend,
+            );
             driver.late = false;
             if is_scan {
                 scans += 1;
-                if delay_ns <= 0 {
-                    mapper.step_backend(settings.backend_iterations_per_scan);
-                } else if ev.t_ns() >= next_backend {
-                    next_backend = ev.t_ns() + delay_ns;
-                    while mapper.step_backend(settings.backend_iterations_per_scan)
-                        == BackendStep::Working
-                    {}
-                }
                 if scans.is_multiple_of(200) {
                     if let Ok(s) = stats_handle.lock() {
                         progress.update(&s, "");
@@ -295,6 +347,7 @@ fn drive(
                 }
             }
         }
+        driver.feed(&mut mapper, Feed::End, Instant::now(), &mut step_backend);
     } else {
         let shared = Mutex::new(mapper);
         let done = std::sync::atomic::AtomicBool::new(false);
@@ -347,7 +400,7 @@ fn drive(
                     result = Err(anyhow!("the back-end thread panicked"));
                     break;
                 };
-                driver.feed(&mut m, &ev, started);
+                driver.feed(&mut m, Feed::Event(&ev), started, &mut |_, _| {});
                 drop(m);
                 if is_scan {
                     scans += 1;
@@ -356,6 +409,12 @@ fn drive(
                             progress.update(&s, "");
                         }
                     }
+                }
+            }
+            if result.is_ok() {
+                match shared.lock() {
+                    Ok(mut m) => driver.feed(&mut m, Feed::End, Instant::now(), &mut |_, _| {}),
+                    Err(_) => result = Err(anyhow!("the back-end thread panicked")),
                 }
             }
             done.store(true, std::sync::atomic::Ordering::Release);
@@ -412,6 +471,7 @@ fn drive(
         keyframe_frontend: driver.keyframe_frontend,
         scan_us: driver.scan_us,
         stamps_repaired: driver.feeder.stamps_repaired,
+        sync: driver.feeder.sync_stats(),
         rejected: driver.rejected,
         first_stamp: driver.first_stamp,
         last_stamp: driver.last_stamp,
@@ -532,6 +592,22 @@ fn finish(
     report
         .extra
         .insert("stamps_repaired".into(), json!(f.stamps_repaired));
+    let sync = f.sync;
+    report.extra.insert(
+        "sync".into(),
+        json!({
+            "held": sync.held,
+            "waited": sync.waited,
+            "evicted": sync.evicted,
+            "too_long": sync.too_long,
+            "wait_s": SYNC_WAIT_NS as f64 * 1e-9,
+            "slots": SYNC_SLOTS,
+            "note": "scans held until wheel odometry (and gyro) covered their time; waited: \
+                     released after the wait without cover; evicted: released early because \
+                     the queue was full; too_long: rejected, more beams than a slot",
+        }),
+    );
+    let warnings = sync_warnings(&sync);
     let mut us = f.scan_us.clone();
     us.sort_by(f64::total_cmp);
     let pct = |q: f64| {
@@ -553,7 +629,36 @@ fn finish(
         trajectory,
         gpe,
         stats: s,
+        warnings,
     })
+}
+
+/// Warnings for scans that reached the mapper without odometry around their time.
+fn sync_warnings(s: &SyncStats) -> Vec<String> {
+    let mut w = Vec::new();
+    if s.waited > 0 {
+        w.push(format!(
+            "{} scans waited {:.1} s of data time without odometry covering them and were \
+             mapped with the odometry there was (report.json: sync.waited)",
+            s.waited,
+            SYNC_WAIT_NS as f64 * 1e-9
+        ));
+    }
+    if s.evicted > 0 {
+        w.push(format!(
+            "{} scans left the odometry wait early because {SYNC_SLOTS} scans were already \
+             waiting (report.json: sync.evicted)",
+            s.evicted
+        ));
+    }
+    if s.too_long > 0 {
+        w.push(format!(
+            "{} scans were rejected: they had to wait for odometry but have more beams than a \
+             waiting slot holds (report.json: sync.too_long)",
+            s.too_long
+        ));
+    }
+    w
 }
 
 fn stats_json(s: &MapperStats) -> serde_json::Value {
