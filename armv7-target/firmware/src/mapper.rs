@@ -40,8 +40,9 @@ use cloi_core::sensor::log::{LogReader, LogRecord, MAX_BEAMS, MIN_READER_BUFFER}
 use semihosting::fs::File;
 use semihosting::println;
 
-use crate::replay::{c_path, quantile, ChunkedFile, OutBuffer, CHUNK, MAX_SCANS};
+use crate::semihost_io::{c_path, ChunkedFile, OutBuffer, CHUNK};
 use crate::statics::TakeOnce;
+use crate::stats::{quantile, MAX_SCANS};
 use crate::timer;
 
 /// Back-end iterations after every scan (`cloi map --backend-iterations`, default 5).
