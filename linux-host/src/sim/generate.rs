@@ -23,8 +23,8 @@ use toml::Spanned;
 use super::builtin::{boxed, plain_wall, sp, wall_with_doors, waypoints};
 use super::path::route_points;
 use super::world::{
-    CeilingSpec, FaultKind, FaultSpec, Material, OdometrySpec, RegionKind, RegionSpec, RobotKind,
-    RouteSpec, WallSpec, World, WorldFile, P2,
+    point_seg, CeilingSpec, FaultKind, FaultSpec, Material, OdometrySpec, RegionKind, RegionSpec,
+    RobotKind, RouteSpec, WallSpec, World, WorldFile, P2,
 };
 
 /// A size class: the floor area (bounding box, m^2) of the building.
@@ -376,7 +376,7 @@ fn big_hall(rng: &mut ChaCha8Rng, d: &Dims, glass: bool) -> Part {
         let r = 0.3;
         let clear = ex
             .windows(2)
-            .all(|s| point_segment(q, s[0], s[1]) > r * 1.5 + 1.0);
+            .all(|s| point_seg(q, s[0], s[1]) > r * 1.5 + 1.0);
         if clear {
             p.boxes.push((
                 [q[0] - r, q[1] - r],
@@ -407,18 +407,6 @@ fn plain_corridor(rng: &mut ChaCha8Rng, d: &Dims, max_len: f64) -> Part {
     p.doors.push((0.0, w));
     p.excursions.push(vec![[w / 2.0, len - 1.0]]);
     p
-}
-
-fn point_segment(p: P2, a: P2, b: P2) -> f64 {
-    let e = [b[0] - a[0], b[1] - a[1]];
-    let l2 = e[0] * e[0] + e[1] * e[1];
-    let t = if l2 > 0.0 {
-        (((p[0] - a[0]) * e[0] + (p[1] - a[1]) * e[1]) / l2).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    let q = [a[0] + t * e[0], a[1] + t * e[1]];
-    ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt()
 }
 
 /// A part placed on a side of the spine, starting at `x0`.

@@ -1026,7 +1026,8 @@ fn point_segment_distance(p: P2, s: &Segment) -> f64 {
     point_seg(p, s.a, s.b)
 }
 
-fn point_seg(p: P2, a: P2, b: P2) -> f64 {
+/// Distance from `p` to the segment `a`-`b`.
+pub(crate) fn point_seg(p: P2, a: P2, b: P2) -> f64 {
     let e = [b[0] - a[0], b[1] - a[1]];
     let l2 = e[0] * e[0] + e[1] * e[1];
     let t = if l2 > 0.0 {
