@@ -39,7 +39,7 @@ use nalgebra::{Matrix3, SymmetricEigen, Vector3};
 
 use crate::frontend::kdtree::KdTree;
 use crate::frontend::scan::ScanPoint;
-use crate::geom::Se2;
+use crate::geom::{wrap_angle, Se2};
 
 /// ICP parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -82,6 +82,15 @@ impl Default for IcpConfig {
             allow_degenerate: false,
         }
     }
+}
+
+/// An independent measurement of the pose being matched: the odometry's prediction.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Prior {
+    /// The predicted pose of the query frame in the reference frame.
+    pub pose: Se2,
+    /// Its information matrix (`[x, y, theta]`, in the reference frame's axes).
+    pub information: Matrix3<f64>,
 }
 
 /// A converged (or iteration-limited) match.
@@ -286,6 +295,12 @@ fn solve_step(
     Ok((step, degenerate))
 }
 
+/// The weighted residual variance of `lin`, floored by `min_sigma`.
+fn residual_variance(lin: &Linearized, cfg: &IcpConfig) -> f64 {
+    let dof = (lin.rows as f64 - 3.0).max(1.0);
+    (lin.sum_w_e2 / dof).max(cfg.min_sigma * cfg.min_sigma)
+}
+
 /// Aligns `query` (points in its own frame) to the reference points in `tree`, starting from
 /// `seed` (pose of the query frame in the reference frame).
 ///
@@ -296,6 +311,22 @@ pub fn align(
     query: &[ScanPoint],
     tree: &KdTree<'_>,
     seed: &Se2,
+    cfg: &IcpConfig,
+) -> Result<IcpResult, MatchError> {
+    align_with_prior(query, tree, seed, None, cfg)
+}
+
+/// [`align`] with the odometry's `prior` on the pose as one more measurement (see the module
+/// docs). The returned information is the scan's alone, so a caller can still weigh the match
+/// against other measurements.
+///
+/// # Errors
+/// As [`align`].
+pub fn align_with_prior(
+    query: &[ScanPoint],
+    tree: &KdTree<'_>,
+    seed: &Se2,
+    prior: Option<&Prior>,
     cfg: &IcpConfig,
 ) -> Result<IcpResult, MatchError> {
     if !seed.is_finite() {
@@ -333,15 +364,26 @@ pub fn align(
         if converged || iterations >= cfg.max_iterations {
             break;
         }
-        let (step, _) = solve_step(&lin.h, &lin.g, radius, cfg)?;
+        let (step, _) = match prior {
+            Some(p) => {
+                let var = residual_variance(&lin, cfg);
+                let info = p.information * var;
+                let r = Vector3::new(
+                    pose.x - p.pose.x,
+                    pose.y - p.pose.y,
+                    wrap_angle(pose.theta - p.pose.theta),
+                );
+                solve_step(&(lin.h + info), &(lin.g + info * r), radius, cfg)?
+            }
+            None => solve_step(&lin.h, &lin.g, radius, cfg)?,
+        };
         pose = Se2::new(pose.x + step[0], pose.y + step[1], pose.theta + step[2]);
         iterations += 1;
         converged = libm::sqrt(step[0] * step[0] + step[1] * step[1]) < cfg.translation_eps
             && libm::fabs(step[2]) < cfg.rotation_eps;
     }
     let (_, degenerate) = solve_step(&lin.h, &lin.g, radius, cfg)?;
-    let dof = (lin.rows as f64 - 3.0).max(1.0);
-    let var = (lin.sum_w_e2 / dof).max(cfg.min_sigma * cfg.min_sigma);
+    let var = residual_variance(&lin, cfg);
     let rms = libm::sqrt(lin.sum_w_e2 / (lin.rows.max(1) as f64));
     Ok(IcpResult {
         pose,

@@ -7,21 +7,43 @@
 //! 2. **match**: ICP of the preprocessed scan against the local point map, from the seed and,
 //!    while turning fast, from seeds rotated by multiples of the turn (a wheel heading that
 //!    lags or leads the scan by a frame puts the seed outside ICP's basin); a match below the
-//!    fitness floor leaves the seed;
+//!    fitness floor leaves the seed. The odometry's prediction enters the match as a prior
+//!    ([`align_with_prior`]) with the increment's covariance from the noise model: where the
+//!    scan pins the pose down (walls in several directions) the prior hardly moves it; where
+//!    it leaves a direction weak (the heading in a round hall, a hall mostly beyond the
+//!    LiDAR's range, the axis of a corridor) the wheels and the gyro decide it in proportion
+//!    to the two informations, instead of the match sliding into a wrong minimum;
 //! 3. **stall compensation**: when the odometry reports exactly no motion while the matcher
 //!    sees the robot move, the stream has stalled and will report that motion later in one
 //!    increment; the motion seen meanwhile is taken off that increment so it is not seeded
 //!    twice.
 //!
+//! The noise model is a preset, not this robot's calibration: real odometry may slip, or be
+//! stamped a frame late (as in the CARMEN logs), and then a prior that trusts the model drags
+//! good matches toward a wrong prediction. So the prior's covariance is scaled by a running
+//! mean of the normalized squared difference between match and prediction (its expectation is
+//! 1 when the model is right; adaptive noise estimation from the innovations). The scale
+//! starts at its largest value, so the odometry is trusted only once the scans have shown it
+//! deserves it, and never goes below 1. A still odometry (possibly stalled) and an odometry
+//! gap give no prior.
+//!
 //! The stage also keeps the [`Travel`] (path length and absolute rotation) of the front-end,
 //! the variable of the motion-uncertainty model ([`MotionNoise`]) that the GPE, the odometry
 //! edges and the loop-closure windows share.
 
-use super::icp::{align, IcpConfig, IcpResult, MatchError};
+use super::icp::{align_with_prior, IcpConfig, IcpResult, MatchError, Prior};
 use super::pointmap::PointMap;
 use super::scan::ScanPoint;
-use crate::geom::{Cov3, Se2};
+use nalgebra::{Matrix3, Vector3};
 
+use crate::geom::{spd_inverse, wrap_angle, Cov3, Se2};
+
+/// Weight of one scan in the running mean of the odometry noise scale (about the last 100
+/// scans).
+const NOISE_SCALE_RATE: f64 = 0.01;
+/// One scan's sample of the noise scale is clamped to this, so a single wrong match or wheel
+/// slip moves the mean by at most `NOISE_SCALE_RATE` times it.
+const NOISE_SCALE_MAX: f64 = 100.0;
 /// The rotated seeds tried while turning, as multiples of the odometry's rotation step.
 const TURN_RESEED_MULTIPLES: [f64; 4] = [-2.0, -1.0, 1.0, 2.0];
 /// A rotated seed's match may lose at most this much fitness against the current best...
@@ -124,6 +146,10 @@ pub struct LidarFrontend {
     /// odometry yet: taken off its next increment.
     stall: Se2,
     travel: Travel,
+    /// Running mean of the normalized squared difference between the match and the odometry's
+    /// prediction over three (1 when the noise model is right); the prediction's covariance is
+    /// scaled by it, at least 1.
+    noise_scale: f64,
     counters: FrontendCounters,
 }
 
@@ -141,6 +167,7 @@ impl LidarFrontend {
             pose: Se2::IDENTITY,
             stall: Se2::IDENTITY,
             travel: Travel::ZERO,
+            noise_scale: NOISE_SCALE_MAX,
             counters: FrontendCounters {
                 icp_failures: 0,
                 icp_degenerate: 0,
@@ -171,12 +198,14 @@ impl LidarFrontend {
     }
 
     /// Places `scan` (robot frame) against `local` (front-end frame), seeded by the fused
-    /// `odometry` pose at the scan's stamp.
+    /// `odometry` pose at the scan's stamp; `motion_cov` is the covariance of the odometry's
+    /// motion since the previous scan (in that scan's frame), the prior of the match.
     pub fn track<const N: usize>(
         &mut self,
         scan: &[ScanPoint],
         local: &mut PointMap<N>,
         odometry: Option<Se2>,
+        motion_cov: Option<Cov3>,
         params: &LidarParams<'_>,
     ) -> FrontendStep {
         let previous = self.previous.unwrap_or(PreviousScan {
@@ -185,11 +214,30 @@ impl LidarFrontend {
         });
         let (increment, odometry_still) = self.odometry_increment(&previous, odometry);
         let seed = previous.pose.compose(&increment);
+        // The odometry's prediction as a measurement: only for a real increment (not a gap, not
+        // a still stream that may be a stall).
+        let predicted = motion_cov
+            .filter(|_| {
+                self.previous.is_some()
+                    && previous.odometry.is_some()
+                    && odometry.is_some()
+                    && !odometry_still
+            })
+            .and_then(|cov| Self::prediction_information(previous.pose.theta, &cov));
         let mut pose = seed;
         if !local.points().is_empty() {
-            match Self::match_scan(scan, local, &seed, libm::fabs(increment.theta), params) {
+            let turn = libm::fabs(increment.theta);
+            let scale = self.noise_scale.max(1.0);
+            let prior = predicted.map(|information| Prior {
+                pose: seed,
+                information: information / scale,
+            });
+            match Self::match_scan(scan, local, &seed, prior.as_ref(), turn, params) {
                 Ok(r) if r.fitness >= params.min_fitness => {
                     pose = r.pose;
+                    if let Some(info) = predicted {
+                        self.calibrate(&r, &seed, &info);
+                    }
                     if r.degenerate.is_some() {
                         self.counters.icp_degenerate += 1;
                     }
@@ -225,23 +273,54 @@ impl LidarFrontend {
         }
     }
 
+    /// Information of the odometry's prediction in the front-end frame's axes: the increment's
+    /// covariance `cov` is in the frame of the previous pose (heading `heading`). `None` when
+    /// it is not invertible.
+    fn prediction_information(heading: f64, cov: &Cov3) -> Option<Matrix3<f64>> {
+        let (c, s) = (libm::cos(heading), libm::sin(heading));
+        let r = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
+        spd_inverse(&(r * cov * r.transpose()))
+    }
+
+    /// Updates the odometry noise scale from one match `r` against the prediction `seed`
+    /// (information `info`, before scaling): the squared Mahalanobis distance of their
+    /// difference, whose expectation is 3 when both covariances are right.
+    fn calibrate(&mut self, r: &IcpResult, seed: &Se2, info: &Matrix3<f64>) {
+        let e = Vector3::new(
+            seed.x - r.pose.x,
+            seed.y - r.pose.y,
+            wrap_angle(seed.theta - r.pose.theta),
+        );
+        let Some(sum_inv) = spd_inverse(&(r.information + info)) else {
+            return;
+        };
+        // The information of the difference of two independent estimates:
+        // (C_r + C_p)^-1 = I_r (I_r + I_p)^-1 I_p, defined even when I_r is singular.
+        let d2 = e.dot(&(r.information * sum_inv * info * e));
+        if d2.is_finite() {
+            let sample = (d2 / 3.0).min(NOISE_SCALE_MAX);
+            self.noise_scale += NOISE_SCALE_RATE * (sample - self.noise_scale);
+        }
+    }
+
     /// ICP from `seed`, and while turning by more than `turn` allows, from the rotated seeds.
     fn match_scan<const N: usize>(
         scan: &[ScanPoint],
         local: &mut PointMap<N>,
         seed: &Se2,
+        prior: Option<&Prior>,
         turn: f64,
         params: &LidarParams<'_>,
     ) -> Result<IcpResult, MatchError> {
         let tree = local.tree();
-        let mut best = align(scan, &tree, seed, params.icp);
+        let mut best = align_with_prior(scan, &tree, seed, prior, params.icp);
         // A primary match whose residual is at the noise level has found its basin: the
         // rotated seeds are for rescuing the ones that have not.
         let settled = matches!(&best, Ok(b) if b.rms <= params.turn_reseed_rms);
         if params.turn_reseed > 0.0 && turn > params.turn_reseed && !settled {
             for k in TURN_RESEED_MULTIPLES {
                 let alt = Se2::new(seed.x, seed.y, seed.theta + k * turn);
-                let Ok(r) = align(scan, &tree, &alt, params.icp) else {
+                let Ok(r) = align_with_prior(scan, &tree, &alt, prior, params.icp) else {
                     continue;
                 };
                 let better = match &best {

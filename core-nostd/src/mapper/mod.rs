@@ -395,15 +395,13 @@ impl<'r> Mapper<'r> {
         probe: &mut impl Probe,
     ) -> Result<FrameOutput, MapperError> {
         // Preprocess: stamp order, range limits and mounting; the points land in `self.scan`.
+        let previous = self.st.last_stamp;
         self.preprocess(scan)?;
 
-        // Front-end (III-B.2): LiDAR odometry, seeded by the fused wheel odometry.
-        let odometry = self.odometry.pose_at(scan.stamp).ok();
+        // Front-end (III-B.2): LiDAR odometry, seeded and constrained by the fused odometry.
+        let (odometry, motion_cov) = self.odometry_at(previous, scan.stamp);
         let lidar = self.cfg.lidar();
-        let front = self
-            .st
-            .frontend
-            .track(self.scan, self.local, odometry, &lidar);
+        let front = (self.st.frontend).track(self.scan, self.local, odometry, motion_cov, &lidar);
 
         // GPE (III-C): the real-time global pose, or the worst-case prediction.
         probe.enter(Section::Gpe);
@@ -432,6 +430,14 @@ impl<'r> Mapper<'r> {
             }
         }
         Ok(out)
+    }
+
+    /// The fused odometry pose at `stamp` and the covariance of its motion since the
+    /// `previous` scan's stamp, for the front-end.
+    fn odometry_at(&self, previous: Option<i64>, stamp: i64) -> (Option<Se2>, Option<Cov3>) {
+        let pose = self.odometry.pose_at(stamp).ok();
+        let motion = previous.and_then(|t| self.odometry.increment(t, stamp).ok());
+        (pose, motion.map(|m| m.motion.cov))
     }
 
     /// Checks the stamp and preprocesses `scan` into `self.scan`.
