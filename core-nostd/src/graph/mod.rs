@@ -120,6 +120,17 @@ impl PoseEdge {
         }
     }
 
+    /// Whether the edge's own measurement explains it at the poses `xi`, `xj`: for a
+    /// max-mixture, the nominal component (information scale 1) wins over the wider ones, i.e.
+    /// the optimizer has not switched the edge off; other kernels always count.
+    pub fn is_active_at(&self, xi: &Se2, xj: &Se2) -> bool {
+        let chi2 = self.chi2_of(&self.residual(xi, xj));
+        match self.robust {
+            RobustKernel::MaxMixture { .. } => self.robust.weigh(chi2).0 >= 1.0,
+            _ => true,
+        }
+    }
+
     /// `e^T Omega e` for residual `e`.
     #[inline]
     pub fn chi2_of(&self, e: &[f64; 3]) -> f64 {
@@ -522,5 +533,24 @@ mod tests {
         let xj = xi.compose(&Se2::new(1.0, 0.0, 0.5));
         let r = e.residual(&xi, &xj);
         assert!(r.iter().all(|v| v.abs() < 1e-12));
+    }
+
+    #[test]
+    fn a_max_mixture_edge_far_from_its_measurement_is_switched_off() {
+        let mut e = PoseEdge::new(
+            NodeId(0),
+            NodeId(1),
+            Se2::new(1.0, 0.0, 0.0),
+            Info3::identity() * 100.0,
+            EdgeKind::Loop,
+        );
+        let xi = Se2::IDENTITY;
+        let near = Se2::new(1.05, 0.0, 0.0);
+        let far = Se2::new(3.0, 1.0, 0.5);
+        // Without a mixture an edge always acts, however far.
+        assert!(e.is_active_at(&xi, &far));
+        e.robust = RobustKernel::max_mixture_with_null(1e-3, 1e-4);
+        assert!(e.is_active_at(&xi, &near));
+        assert!(!e.is_active_at(&xi, &far));
     }
 }

@@ -8,7 +8,7 @@ use clap::{Args, Subcommand};
 use cloi_core::Se2;
 use serde_json::json;
 
-use super::loops::check_loops;
+use super::loops::{check_loops, switched_off_edges};
 use super::metrics::{ate, rpe, DeltaUnit};
 use super::relations::{load_relations, relations_from_reference, score, PlanarTrajectory};
 use super::traj::{Alignment, Trajectory};
@@ -59,6 +59,10 @@ pub struct LoopsArgs {
     /// A loop edge whose translation differs from ground truth by more than this (m) is wrong.
     #[arg(long, default_value_t = 0.3)]
     pub threshold: f64,
+    /// The run's `report.json`: its list of loop edges the back-end switched off separates
+    /// the wrong loop closures acting on the map (`wrong_active`) from the rejected ones.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
 }
 
 /// Arguments of `cloi eval arps`.
@@ -200,8 +204,13 @@ pub fn run(cmd: &EvalCommand, out: &mut dyn Write) -> Result<()> {
                 truth = truth.in_sensor_frame(&o.inverse());
             }
             let tolerance_ns = (a.max_time_diff * 1e9).round() as i64;
+            let switched_off = match &a.report {
+                Some(path) => switched_off_edges(path)?,
+                None => Default::default(),
+            };
             serde_json::to_value(check_loops(
                 &graph,
+                &switched_off,
                 &estimate,
                 &truth,
                 tolerance_ns,

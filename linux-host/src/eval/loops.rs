@@ -5,11 +5,20 @@
 //! is a wrong loop closure that the back-end accepted (paper, section III-D: loop closure
 //! verification; this checks it from outside).
 //!
+//! The graph file holds every loop edge, also those the back-end's max-mixture has switched off
+//! (its null hypothesis explains them better at the final poses, so they do not act on the
+//! map). Given the switched-off edges (`report.json`'s `loop_edges.switched_off_edges`), the
+//! check counts the wrong edges that are active apart: those are the wrong loop closures the
+//! optimized map really accepted.
+//!
 //! The graph file holds no time stamps, so each vertex is matched to the scan of the mapper's
 //! trajectory (`trajectory.tum`) at the same optimized pose: `cloi map` writes keyframe poses to
 //! both files from the same solution, so the match is exact up to printing precision.
 
-use anyhow::{bail, Result};
+use std::collections::HashSet;
+use std::path::Path;
+
+use anyhow::{bail, Context, Result};
 use cloi_core::geom::wrap_angle;
 use cloi_core::Se2;
 use serde::Serialize;
@@ -34,6 +43,8 @@ pub struct WrongLoop {
     pub error_m: f64,
     /// Difference of the claimed and the true relative rotation, degrees.
     pub error_deg: f64,
+    /// Whether the edge acts on the optimized map (not switched off by the max-mixture).
+    pub active: bool,
 }
 
 /// The verdict on a graph's loop edges.
@@ -48,12 +59,42 @@ pub struct LoopCheck {
     pub unchecked: usize,
     /// Checked edges that disagree with ground truth by more than the threshold.
     pub wrong: usize,
+    /// Loop edges named as switched off by the back-end.
+    pub switched_off: usize,
+    /// Wrong edges that are not switched off: wrong loop closures acting on the map.
+    pub wrong_active: usize,
     /// Largest translation disagreement among the checked edges, metres.
     pub max_error_m: f64,
     /// The threshold used, metres.
     pub threshold_m: f64,
     /// The wrong edges, worst first.
     pub wrong_edges: Vec<WrongLoop>,
+}
+
+/// The loop edges a `cloi map` report names as switched off, as `(from, to)` vertex ids.
+///
+/// # Errors
+/// An unreadable file, or a report without the `loop_edges.switched_off_edges` list.
+pub fn switched_off_edges(report: &Path) -> Result<HashSet<(i64, i64)>> {
+    let text =
+        std::fs::read_to_string(report).with_context(|| format!("reading {}", report.display()))?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{} is not JSON", report.display()))?;
+    let Some(list) = json["loop_edges"]["switched_off_edges"].as_array() else {
+        bail!(
+            "{} has no loop_edges.switched_off_edges list (not a cloi map report, or an older one)",
+            report.display()
+        );
+    };
+    list.iter()
+        .map(|pair| match (pair[0].as_i64(), pair[1].as_i64()) {
+            (Some(a), Some(b)) => Ok((a, b)),
+            _ => bail!(
+                "{}: a switched-off edge is not a pair of vertex ids: {pair}",
+                report.display()
+            ),
+        })
+        .collect()
 }
 
 /// The time stamp of the trajectory pose equal to `pose`, if one is.
@@ -92,11 +133,14 @@ fn interpolate(truth: &PlanarTrajectory, t_ns: i64, max_gap_ns: i64) -> Option<S
 /// two poses around the time if they are at most `max_gap_ns` apart (a sparse reference such
 /// as GMapping's, which holds only the scans it processed).
 ///
+/// `switched_off` names the edges (`(from, to)` vertex ids) the back-end switched off.
+///
 /// # Errors
 /// A threshold that is not a positive number, or a graph whose vertices match no scan at all
 /// (the wrong trajectory file).
 pub fn check_loops(
     graph: &GraphFile,
+    switched_off: &HashSet<(i64, i64)>,
     estimate: &PlanarTrajectory,
     truth: &PlanarTrajectory,
     tolerance_ns: i64,
@@ -119,12 +163,19 @@ pub fn check_loops(
         checked: 0,
         unchecked: 0,
         wrong: 0,
+        switched_off: 0,
+        wrong_active: 0,
         max_error_m: 0.0,
         threshold_m,
         wrong_edges: Vec::new(),
     };
+    let id = |node: usize| graph.ids.get(node).copied().unwrap_or(-1);
     for e in graph.edges.iter().filter(|e| e.kind() == EdgeKind::Loop) {
         check.loop_edges += 1;
+        let active = !switched_off.contains(&(id(e.from), id(e.to)));
+        if !active {
+            check.switched_off += 1;
+        }
         let truth_at = |node: usize| {
             stamps.get(node).copied().flatten().and_then(|t| {
                 truth
@@ -144,11 +195,15 @@ pub fn check_loops(
         check.max_error_m = check.max_error_m.max(error_m);
         if error_m > threshold_m {
             check.wrong += 1;
+            if active {
+                check.wrong_active += 1;
+            }
             check.wrong_edges.push(WrongLoop {
-                from: graph.ids.get(e.from).copied().unwrap_or(-1),
-                to: graph.ids.get(e.to).copied().unwrap_or(-1),
+                from: id(e.from),
+                to: id(e.to),
                 error_m,
                 error_deg,
+                active,
             });
         }
     }
@@ -220,15 +275,39 @@ mod tests {
         let path = dir.path().join("test.g2o");
         std::fs::write(&path, text).expect("write");
         let graph = crate::graph_io::read_graph(&path, None).expect("graph");
-        let c = check_loops(&graph, &estimate, &truth, 10_000_000, 0, 0.3).expect("checks");
+        let c = check_loops(
+            &graph,
+            &HashSet::new(),
+            &estimate,
+            &truth,
+            10_000_000,
+            0,
+            0.3,
+        )
+        .expect("checks");
         assert_eq!(c.loop_edges, 2);
         assert_eq!(c.checked, 2);
         assert_eq!(c.unchecked, 0);
         assert_eq!(c.wrong, 1);
         assert_eq!((c.wrong_edges[0].from, c.wrong_edges[0].to), (10, 12));
         assert!((c.max_error_m - 0.5).abs() < 1e-6, "{}", c.max_error_m);
+        assert_eq!((c.switched_off, c.wrong_active), (0, 1));
+        // The wrong edge switched off by the back-end still counts as wrong, not as active.
+        let off = HashSet::from([(10, 12)]);
+        let c = check_loops(&graph, &off, &estimate, &truth, 10_000_000, 0, 0.3).expect("checks");
+        assert_eq!((c.wrong, c.switched_off, c.wrong_active), (1, 1, 0));
+        assert!(!c.wrong_edges[0].active);
         // Ground truth too far in time: nothing can be checked.
-        let c = check_loops(&graph, &estimate, &truth, 1_000_000, 0, 0.3).expect("checks");
+        let c = check_loops(
+            &graph,
+            &HashSet::new(),
+            &estimate,
+            &truth,
+            1_000_000,
+            0,
+            0.3,
+        )
+        .expect("checks");
         assert_eq!((c.checked, c.unchecked, c.wrong), (0, 2, 0));
         // ... unless interpolation may bridge the 1 s between ground-truth poses: the stamps
         // are 3 ms off, so the interpolated truth moves by under 3 cm and the verdict stands.
@@ -237,17 +316,42 @@ mod tests {
             .poses
             .insert(0, (stamp(0) - 1_000_000_000, truth_poses[0]));
         padded.poses.push((stamp(4), truth_poses[3]));
-        let c =
-            check_loops(&graph, &estimate, &padded, 1_000_000, 1_100_000_000, 0.3).expect("checks");
+        let c = check_loops(
+            &graph,
+            &HashSet::new(),
+            &estimate,
+            &padded,
+            1_000_000,
+            1_100_000_000,
+            0.3,
+        )
+        .expect("checks");
         assert_eq!((c.checked, c.unchecked, c.wrong), (2, 0, 1));
         // A threshold above the error accepts both; a trajectory of another run is an error.
         assert_eq!(
-            check_loops(&graph, &estimate, &truth, 10_000_000, 0, 0.6)
-                .expect("checks")
-                .wrong,
+            check_loops(
+                &graph,
+                &HashSet::new(),
+                &estimate,
+                &truth,
+                10_000_000,
+                0,
+                0.6
+            )
+            .expect("checks")
+            .wrong,
             0
         );
-        assert!(check_loops(&graph, &truth, &truth, 10_000_000, 0, 0.3).is_err());
-        assert!(check_loops(&graph, &estimate, &truth, 10_000_000, 0, f64::NAN).is_err());
+        assert!(check_loops(&graph, &HashSet::new(), &truth, &truth, 10_000_000, 0, 0.3).is_err());
+        assert!(check_loops(
+            &graph,
+            &HashSet::new(),
+            &estimate,
+            &truth,
+            10_000_000,
+            0,
+            f64::NAN
+        )
+        .is_err());
     }
 }

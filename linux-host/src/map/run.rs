@@ -27,6 +27,7 @@ use cloi_core::mapper::{
     ScanSlots,
 };
 use cloi_core::profile::{AirportResources, HomeResources, MapperResources, OfficeResources};
+use cloi_core::storage::NodeId;
 use serde_json::json;
 
 use super::config::{MapConfig, Profile};
@@ -278,6 +279,10 @@ struct Finished {
     nodes: usize,
     edges: usize,
     g2o: String,
+    /// Loop edges in the final graph.
+    loop_edges: usize,
+    /// Those switched off by the max-mixture at the final poses, as `(from, to)` vertex ids.
+    switched_off: Vec<(i64, i64)>,
     submaps: Vec<(Se2, Vec<i8>)>,
     grid: GridParams,
     rejected: u64,
@@ -451,6 +456,18 @@ fn drive(
         duplicate_pairs: 0,
     };
     let g2o = write_g2o(&file, &file.poses);
+    // Loop edges the max-mixture has switched off at the final poses (as file vertex ids).
+    let node_pose = |id: NodeId| g.node(id).map(|n| n.pose);
+    let mut loop_edges = 0;
+    let mut switched_off = Vec::new();
+    for e in g.edges().iter().filter(|e| e.kind == EdgeKind::Loop) {
+        loop_edges += 1;
+        if let (Some(a), Some(b)) = (node_pose(e.from), node_pose(e.to)) {
+            if !e.is_active_at(&a, &b) {
+                switched_off.push((file.ids[e.from.0 as usize], file.ids[e.to.0 as usize]));
+            }
+        }
+    }
     Ok(Finished {
         keyframe_poses: mapper
             .nodes()
@@ -462,6 +479,8 @@ fn drive(
         nodes: g.node_count(),
         edges: g.edge_count(),
         g2o,
+        loop_edges,
+        switched_off,
         submaps: mapper
             .submaps()
             .map(|(pose, cells)| (pose, cells.to_vec()))
@@ -605,6 +624,18 @@ fn finish(
             "note": "scans held until wheel odometry (and gyro) covered their time; waited: \
                      released after the wait without cover; evicted: released early because \
                      the queue was full; too_long: rejected, more beams than a slot",
+        }),
+    );
+    report.extra.insert(
+        "loop_edges".into(),
+        json!({
+            "in_graph": f.loop_edges,
+            "active": f.loop_edges - f.switched_off.len(),
+            "switched_off": f.switched_off.len(),
+            "switched_off_edges": f.switched_off,
+            "note": "loop edges of graph.g2o; switched off: the max-mixture's null hypothesis \
+                     explains them better at the final poses, so they do not act on the map \
+                     (vertex ids as in graph.g2o)",
         }),
     );
     let warnings = sync_warnings(&sync);
