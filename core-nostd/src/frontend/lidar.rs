@@ -22,10 +22,11 @@
 //! stamped a frame late (as in the CARMEN logs), and then a prior that trusts the model drags
 //! good matches toward a wrong prediction. So the prior's covariance is scaled by a running
 //! mean of the normalized squared difference between match and prediction (its expectation is
-//! 1 when the model is right; adaptive noise estimation from the innovations). The scale
-//! starts at its largest value, so the odometry is trusted only once the scans have shown it
-//! deserves it, and never goes below 1. A still odometry (possibly stalled) and an odometry
-//! gap give no prior.
+//! 1 when the model is right; adaptive noise estimation from the innovations): the plain mean
+//! of the samples so far, then a running mean over about the last 100 scans. Before the first
+//! sample the scale is at its largest, so the odometry is trusted only once the scans have
+//! shown how far it deserves it; it never goes below 1. A still odometry (possibly stalled)
+//! and an odometry gap give no prior.
 //!
 //! The stage also keeps the [`Travel`] (path length and absolute rotation) of the front-end,
 //! the variable of the motion-uncertainty model ([`MotionNoise`]) that the GPE, the odometry
@@ -150,6 +151,8 @@ pub struct LidarFrontend {
     /// prediction over three (1 when the noise model is right); the prediction's covariance is
     /// scaled by it, at least 1.
     noise_scale: f64,
+    /// Samples in `noise_scale` (counted up to the averaging horizon).
+    noise_samples: u32,
     counters: FrontendCounters,
 }
 
@@ -168,6 +171,7 @@ impl LidarFrontend {
             stall: Se2::IDENTITY,
             travel: Travel::ZERO,
             noise_scale: NOISE_SCALE_MAX,
+            noise_samples: 0,
             counters: FrontendCounters {
                 icp_failures: 0,
                 icp_degenerate: 0,
@@ -299,7 +303,10 @@ impl LidarFrontend {
         let d2 = e.dot(&(r.information * sum_inv * info * e));
         if d2.is_finite() {
             let sample = (d2 / 3.0).min(NOISE_SCALE_MAX);
-            self.noise_scale += NOISE_SCALE_RATE * (sample - self.noise_scale);
+            // The plain mean of the samples so far, then a running mean over the horizon.
+            self.noise_samples = self.noise_samples.saturating_add(1);
+            let rate = (1.0 / self.noise_samples as f64).max(NOISE_SCALE_RATE);
+            self.noise_scale += rate * (sample - self.noise_scale);
         }
     }
 
