@@ -32,13 +32,18 @@
 //! the variable of the motion-uncertainty model ([`MotionNoise`]) that the GPE, the odometry
 //! edges and the loop-closure windows share.
 
+use super::gyro_bias::GyroBias;
 use super::icp::{align_with_prior, IcpConfig, IcpResult, MatchError, Prior};
+use super::odometry::OdomIncrement;
 use super::pointmap::PointMap;
 use super::scan::ScanPoint;
 use nalgebra::{Matrix3, Vector3};
 
 use crate::geom::{spd_inverse, wrap_angle, Cov3, Se2};
 
+/// Share of a scan interval whose heading must come from the gyro for the match to measure the
+/// gyro's bias (the rest: a wheel sample at either end without a live gyro).
+const GYRO_COVER: f64 = 0.99;
 /// Weight of one scan in the running mean of the odometry noise scale (about the last 100
 /// scans).
 const NOISE_SCALE_RATE: f64 = 0.01;
@@ -153,6 +158,8 @@ pub struct LidarFrontend {
     noise_scale: f64,
     /// Samples in `noise_scale` (counted up to the averaging horizon).
     noise_samples: u32,
+    /// The gyro's bias, measured by the matches.
+    gyro_bias: GyroBias,
     counters: FrontendCounters,
 }
 
@@ -172,6 +179,7 @@ impl LidarFrontend {
             travel: Travel::ZERO,
             noise_scale: NOISE_SCALE_MAX,
             noise_samples: 0,
+            gyro_bias: GyroBias::new(),
             counters: FrontendCounters {
                 icp_failures: 0,
                 icp_degenerate: 0,
@@ -202,14 +210,14 @@ impl LidarFrontend {
     }
 
     /// Places `scan` (robot frame) against `local` (front-end frame), seeded by the fused
-    /// `odometry` pose at the scan's stamp; `motion_cov` is the covariance of the odometry's
-    /// motion since the previous scan (in that scan's frame), the prior of the match.
+    /// `odometry` pose at the scan's stamp; `motion` is the odometry's motion since the
+    /// previous scan, whose covariance (in that scan's frame) makes the prior of the match.
     pub fn track<const N: usize>(
         &mut self,
         scan: &[ScanPoint],
         local: &mut PointMap<N>,
         odometry: Option<Se2>,
-        motion_cov: Option<Cov3>,
+        motion: Option<&OdomIncrement>,
         params: &LidarParams<'_>,
     ) -> FrontendStep {
         let previous = self.previous.unwrap_or(PreviousScan {
@@ -220,7 +228,8 @@ impl LidarFrontend {
         let seed = previous.pose.compose(&increment);
         // The odometry's prediction as a measurement: only for a real increment (not a gap, not
         // a still stream that may be a stall).
-        let predicted = motion_cov
+        let predicted = motion
+            .map(|m| m.motion.cov)
             .filter(|_| {
                 self.previous.is_some()
                     && previous.odometry.is_some()
@@ -241,6 +250,9 @@ impl LidarFrontend {
                     pose = r.pose;
                     if let Some(info) = predicted {
                         self.calibrate(&r, &seed, &info);
+                        if let Some(m) = motion {
+                            self.measure_gyro_bias(&r, &seed, m);
+                        }
                     }
                     if r.degenerate.is_some() {
                         self.counters.icp_degenerate += 1;
@@ -308,6 +320,25 @@ impl LidarFrontend {
             let rate = (1.0 / self.noise_samples as f64).max(NOISE_SCALE_RATE);
             self.noise_scale += rate * (sample - self.noise_scale);
         }
+    }
+
+    /// One measurement of the gyro's bias from the match `r` against the prediction `seed`,
+    /// when the gyro gave the heading over the whole interval of `motion`.
+    fn measure_gyro_bias(&mut self, r: &IcpResult, seed: &Se2, motion: &OdomIncrement) {
+        if !(motion.seconds > 0.0 && motion.gyro_seconds >= GYRO_COVER * motion.seconds) {
+            return;
+        }
+        let Some(cov) = spd_inverse(&r.information) else {
+            return;
+        };
+        let innovation = wrap_angle(seed.theta - r.pose.theta);
+        let variance = cov[(2, 2)] + motion.motion.cov[(2, 2)];
+        self.gyro_bias.update(innovation, variance, motion.seconds);
+    }
+
+    /// The estimated bias of the gyro, rad/s (see [`GyroBias`]).
+    pub fn gyro_bias(&self) -> f64 {
+        self.gyro_bias.bias()
     }
 
     /// ICP from `seed`, and while turning by more than `turn` allows, from the rotated seeds.

@@ -8,6 +8,7 @@
 pub mod csm;
 pub mod far_csm;
 pub mod grid;
+pub mod gyro_bias;
 pub mod icp;
 pub mod kdtree;
 pub mod keyframe;

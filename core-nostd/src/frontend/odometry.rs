@@ -159,6 +159,8 @@ struct Sample {
     rot: f64,
     /// Heading variance accumulated so far, rad^2.
     heading_var: f64,
+    /// Time so far whose heading came from the gyro, seconds.
+    gyro_time: f64,
 }
 
 /// A relative motion between two times.
@@ -170,6 +172,10 @@ pub struct OdomIncrement {
     pub distance: f64,
     /// Absolute rotation, radians.
     pub rotation: f64,
+    /// Length of the interval, seconds.
+    pub seconds: f64,
+    /// Part of the interval whose heading came from the gyro, seconds.
+    pub gyro_seconds: f64,
 }
 
 /// The fusion state with a history of `N` fused samples.
@@ -182,6 +188,8 @@ pub struct OdometryFusion<const N: usize = 256> {
     gyro: Option<(i64, f64, f64)>,
     /// Gyro heading at the last wheel sample, when the gyro was live then.
     gyro_at_last_wheel: Option<f64>,
+    /// Estimated gyro bias, rad/s, taken off every rate from now on.
+    gyro_bias: f64,
     stats: OdometryStats,
 }
 
@@ -196,6 +204,7 @@ impl<const N: usize> OdometryFusion<N> {
             last_wheel: None,
             gyro: None,
             gyro_at_last_wheel: None,
+            gyro_bias: 0.0,
             stats: OdometryStats {
                 wheel: 0,
                 gyro: 0,
@@ -224,6 +233,14 @@ impl<const N: usize> OdometryFusion<N> {
         Err(e)
     }
 
+    /// Sets the gyro bias (rad/s) taken off the rates pushed from now on; the headings
+    /// already integrated are not revised.
+    pub fn set_gyro_bias(&mut self, bias: f64) {
+        if bias.is_finite() {
+            self.gyro_bias = bias;
+        }
+    }
+
     /// Adds a gyro yaw rate (rad/s) measured at `t` ns.
     ///
     /// # Errors
@@ -237,7 +254,7 @@ impl<const N: usize> OdometryFusion<N> {
             Some((tg, h, w)) => h + w * ((t - tg) as f64 * NS),
             None => 0.0,
         };
-        self.gyro = Some((t, heading, yaw_rate));
+        self.gyro = Some((t, heading, yaw_rate - self.gyro_bias));
         self.stats.gyro += 1;
         Ok(())
     }
@@ -270,6 +287,7 @@ impl<const N: usize> OdometryFusion<N> {
                 dist: 0.0,
                 rot: 0.0,
                 heading_var: 0.0,
+                gyro_time: 0.0,
             });
             self.stats.wheel += 1;
             return Ok(());
@@ -302,9 +320,9 @@ impl<const N: usize> OdometryFusion<N> {
             return Err(OdomError::NoData);
         };
         // The heading step may exceed pi with a fast gyro; take it unwrapped for the sums.
-        let dtheta = match (self.gyro_at_last_wheel, gyro_now) {
-            (Some(g0), Some(g1)) => g1 - g0,
-            _ => wheel.theta,
+        let (dtheta, gyro_dt) = match (self.gyro_at_last_wheel, gyro_now) {
+            (Some(g0), Some(g1)) => (g1 - g0, (t - t_prev) as f64 * NS),
+            _ => (wheel.theta, 0.0),
         };
         self.push_sample(Sample {
             t,
@@ -312,6 +330,7 @@ impl<const N: usize> OdometryFusion<N> {
             dist: last.dist + ds,
             rot: last.rot + libm::fabs(dtheta),
             heading_var: last.heading_var + heading_var,
+            gyro_time: last.gyro_time + gyro_dt,
         });
         self.last_wheel = Some((t, pose));
         self.gyro_at_last_wheel = gyro_now;
@@ -363,6 +382,7 @@ impl<const N: usize> OdometryFusion<N> {
             dist: lerp(a.dist, b.dist),
             rot: lerp(a.rot, b.rot),
             heading_var: lerp(a.heading_var, b.heading_var),
+            gyro_time: lerp(a.gyro_time, b.gyro_time),
         })
     }
 
@@ -414,6 +434,8 @@ impl<const N: usize> OdometryFusion<N> {
             motion: UncertainPose { pose: motion, cov },
             distance: d,
             rotation: phi,
+            seconds: (t_to - t_from) as f64 * NS,
+            gyro_seconds: libm::fabs(b.gyro_time - a.gyro_time),
         })
     }
 }

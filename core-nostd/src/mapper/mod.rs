@@ -47,7 +47,7 @@ mod types;
 use crate::backend::prune::PruneScratch;
 use crate::backend::schedule::{BackendSchedule, ScheduleParams};
 use crate::frontend::lidar::{FrontendStep, LidarFrontend, LidarParams, MotionNoise};
-use crate::frontend::odometry::OdometryFusion;
+use crate::frontend::odometry::{OdomIncrement, OdometryFusion};
 use crate::frontend::scan::{BeamGeometry, ScanPoint, ScanPoints};
 use crate::frontend::{preprocess, PointMap, PreprocessConfig};
 use crate::geom::{Cov3, Se2};
@@ -399,9 +399,11 @@ impl<'r> Mapper<'r> {
         self.preprocess(scan)?;
 
         // Front-end (III-B.2): LiDAR odometry, seeded and constrained by the fused odometry.
-        let (odometry, motion_cov) = self.odometry_at(previous, scan.stamp);
+        let (odometry, motion) = self.odometry_at(previous, scan.stamp);
         let lidar = self.cfg.lidar();
-        let front = (self.st.frontend).track(self.scan, self.local, odometry, motion_cov, &lidar);
+        let front =
+            (self.st.frontend).track(self.scan, self.local, odometry, motion.as_ref(), &lidar);
+        self.odometry.set_gyro_bias(self.st.frontend.gyro_bias());
 
         // GPE (III-C): the real-time global pose, or the worst-case prediction.
         probe.enter(Section::Gpe);
@@ -432,12 +434,16 @@ impl<'r> Mapper<'r> {
         Ok(out)
     }
 
-    /// The fused odometry pose at `stamp` and the covariance of its motion since the
-    /// `previous` scan's stamp, for the front-end.
-    fn odometry_at(&self, previous: Option<i64>, stamp: i64) -> (Option<Se2>, Option<Cov3>) {
+    /// The fused odometry pose at `stamp` and its motion since the `previous` scan's stamp,
+    /// for the front-end.
+    fn odometry_at(
+        &self,
+        previous: Option<i64>,
+        stamp: i64,
+    ) -> (Option<Se2>, Option<OdomIncrement>) {
         let pose = self.odometry.pose_at(stamp).ok();
         let motion = previous.and_then(|t| self.odometry.increment(t, stamp).ok());
-        (pose, motion.map(|m| m.motion.cov))
+        (pose, motion)
     }
 
     /// Checks the stamp and preprocesses `scan` into `self.scan`.
