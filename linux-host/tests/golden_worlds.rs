@@ -1,0 +1,118 @@
+//! The CI cut of the generated-building benchmark (`bench/generalize.sh --quick`, issue 15):
+//! five buildings from seeds fixed before any result was seen (three small, two medium, two
+//! without a gyro), one lap each, mapped by `cloi map --sim-world` in the deterministic
+//! schedule and scored with `cloi eval ate` against the simulator's exact ground truth.
+//!
+//! Bounds (issue 15's targets for generated worlds): no building above 0.3 m final ATE RMSE,
+//! median at most 0.05 m. Two more targets of the issue are not met yet and so not asserted:
+//! p90 at most 0.10 m (nearest rank; with five runs, the worst: gen:201:m at 0.109 m on
+//! 2026-12-02) and no wrong loop closure acting on the map (`bench/generalize.sh` counts them).
+//!
+//! Release mode: `cargo test --release -p cloi-host --features golden --test golden_worlds`.
+
+use std::path::Path;
+use std::process::Command;
+
+const WORLDS: [&str; 5] = [
+    "gen:101:s",
+    "gen:105:s:nogyro",
+    "gen:109:s",
+    "gen:201:m",
+    "gen:205:m:nogyro",
+];
+
+fn cloi(args: &[&str]) -> String {
+    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(args)
+        .output()
+        .expect("cloi runs");
+    assert!(
+        o.status.success(),
+        "cloi {args:?}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8(o.stdout).expect("utf-8")
+}
+
+fn ate_rmse(trajectory: &Path, reference: &Path) -> f64 {
+    let text = cloi(&[
+        "eval",
+        "ate",
+        "--trajectory",
+        trajectory.to_str().expect("utf-8"),
+        "--reference",
+        reference.to_str().expect("utf-8"),
+    ]);
+    let v: serde_json::Value = serde_json::from_str(&text).expect("json");
+    v["translation_m"]["rmse"].as_f64().expect("rmse")
+}
+
+/// Simulates one lap of `world` for its ground truth, maps the same simulation and returns
+/// the final and real-time ATE RMSE.
+fn run(world: &str, dir: &Path) -> (f64, f64) {
+    let seed = world.split(':').nth(1).expect("seed");
+    let bag = dir.join("sim.mcap");
+    let sim = cloi(&[
+        "sim",
+        "--world",
+        world,
+        "--sensors",
+        "L",
+        "--laps",
+        "1",
+        "--seed",
+        seed,
+        "--out",
+        bag.to_str().expect("utf-8"),
+    ]);
+    let duration = sim
+        .lines()
+        .find_map(|l| l.strip_prefix("duration: ")?.strip_suffix(" s"))
+        .expect("the simulator prints the lap's duration");
+    let out = dir.join("map");
+    cloi(&[
+        "-q",
+        "map",
+        "--sim-world",
+        world,
+        "--sim-duration",
+        duration,
+        "--sim-seed",
+        seed,
+        "--profile",
+        "office",
+        "--deterministic",
+        "--out",
+        out.to_str().expect("utf-8"),
+    ]);
+    let truth = dir.join("sim.gt.tum");
+    (
+        ate_rmse(&out.join("trajectory.tum"), &truth),
+        ate_rmse(&out.join("gpe.tum"), &truth),
+    )
+}
+
+#[test]
+fn generated_buildings_map_within_the_generalization_bounds() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let mut finals = Vec::new();
+    for world in WORLDS {
+        let dir = tmp.path().join(world.replace(':', "_"));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let (fin, rt) = run(world, &dir);
+        println!("{world}: final ATE RMSE {fin:.3} m, real-time {rt:.3} m");
+        finals.push((fin, world));
+    }
+    for &(fin, world) in &finals {
+        assert!(fin <= 0.3, "{world} failed: final ATE RMSE {fin} m");
+    }
+    let mut sorted: Vec<f64> = finals.iter().map(|f| f.0).collect();
+    sorted.sort_by(f64::total_cmp);
+    let rank = |q: f64| sorted[((q * sorted.len() as f64) as usize).min(sorted.len() - 1)];
+    let (median, p90) = (rank(0.5), rank(0.9));
+    println!("median {median:.3} m, p90 {p90:.3} m");
+    assert!(
+        median <= 0.05,
+        "median final ATE RMSE {median} m: {finals:?}"
+    );
+}
