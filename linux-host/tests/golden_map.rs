@@ -93,7 +93,7 @@ fn csail_beats_gmapping_and_repeats_exactly() {
     }
     let err = relation_error(&a, &ra, &reference, 500);
     println!("mit-csail: relation error {err:.4} m, report {ra}");
-    // Measured 0.0416 m (2026-12-02; 0.0422 m before the odometry prior); GMapping's published figure is the bound.
+    // Measured 0.0397 m (2026-12-02; 0.0422 m before the odometry prior); GMapping's published figure is the bound.
     assert!(err < 0.049, "relation error {err} m");
     assert!(ra["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{ra}");
 }
@@ -114,7 +114,7 @@ fn fr079_beats_gmapping() {
     assert_eq!(ra["input"]["laser_offset"][0].as_f64(), Some(-0.04), "{ra}");
     let err = relation_error(&a, &ra, &reference, 500);
     println!("fr079: relation error {err:.4} m, report {ra}");
-    // Measured 0.0375 m (2026-12-02; 0.0371 m before the odometry prior); GMapping's published figure is the bound.
+    // Measured 0.0373 m (2026-12-02; 0.0371 m before the odometry prior); GMapping's published figure is the bound.
     assert!(err < 0.061, "relation error {err} m");
     assert!(ra["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{ra}");
 }
@@ -172,7 +172,7 @@ fn intel_stays_consistent_when_loop_search_changes() {
         let r = map(&log, &dir, &extra);
         let err = relation_error(&dir, &r, &reference, 5000);
         println!("intel ({name}): relation error {err:.4} m, report {r}");
-        // Measured 0.0381 m (preset, 2026-12-02, with the odometry prior; 0.0415 m without) and
+        // Measured 0.0379 m (preset, 2026-12-02, with the odometry prior; 0.0415 m without) and
         // 0.0400 m (5 candidates, 2026-11-29); before the
         // window change 0.0515 m and 0.73 m. The old preset figure is the bound.
         assert!(err < 0.0515, "{name}: relation error {err} m");
