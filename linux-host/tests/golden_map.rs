@@ -93,7 +93,8 @@ fn csail_beats_gmapping_and_repeats_exactly() {
     }
     let err = relation_error(&a, &ra, &reference, 500);
     println!("mit-csail: relation error {err:.4} m, report {ra}");
-    // Measured 0.0397 m (2026-12-02; 0.0422 m before the odometry prior); GMapping's published figure is the bound.
+    // Measured 0.0397 m (2026-12-02; 0.0422 m before the odometry prior); GMapping's
+    // published figure is the bound.
     assert!(err < 0.049, "relation error {err} m");
     assert!(ra["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{ra}");
 }
@@ -114,7 +115,8 @@ fn fr079_beats_gmapping() {
     assert_eq!(ra["input"]["laser_offset"][0].as_f64(), Some(-0.04), "{ra}");
     let err = relation_error(&a, &ra, &reference, 500);
     println!("fr079: relation error {err:.4} m, report {ra}");
-    // Measured 0.0373 m (2026-12-02; 0.0371 m before the odometry prior); GMapping's published figure is the bound.
+    // Measured 0.0373 m (2026-12-02; 0.0371 m before the odometry prior); GMapping's
+    // published figure is the bound.
     assert!(err < 0.061, "relation error {err} m");
     assert!(ra["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{ra}");
 }
