@@ -26,7 +26,9 @@
 //! of the samples so far, then a running mean over about the last 100 scans. Before the first
 //! sample the scale is at its largest, so the odometry is trusted only once the scans have
 //! shown how far it deserves it; it never goes below 1. A still odometry (possibly stalled)
-//! and an odometry gap give no prior.
+//! and an odometry gap give no prior. Where the gyro gave the prediction's heading, the same
+//! match-prediction difference measures the gyro's bias ([`GyroBias`]), which the caller takes
+//! off the gyro's rates.
 //!
 //! The stage also keeps the [`Travel`] (path length and absolute rotation) of the front-end,
 //! the variable of the motion-uncertainty model ([`MotionNoise`]) that the GPE, the odometry
@@ -47,8 +49,8 @@ const GYRO_COVER: f64 = 0.99;
 /// Weight of one scan in the running mean of the odometry noise scale (about the last 100
 /// scans).
 const NOISE_SCALE_RATE: f64 = 0.01;
-/// One scan's sample of the noise scale is clamped to this, so a single wrong match or wheel
-/// slip moves the mean by at most `NOISE_SCALE_RATE` times it.
+/// One scan's sample of the noise scale is clamped to this, so once the horizon is full a
+/// single wrong match or wheel slip moves the mean by at most `NOISE_SCALE_RATE` times it.
 const NOISE_SCALE_MAX: f64 = 100.0;
 /// The rotated seeds tried while turning, as multiples of the odometry's rotation step.
 const TURN_RESEED_MULTIPLES: [f64; 4] = [-2.0, -1.0, 1.0, 2.0];
