@@ -56,6 +56,7 @@ fn simulated_home_writes_every_output_and_repeats_bit_for_bit() {
         "map.pgm",
         "map.yaml",
         "map.png",
+        "result.mcap",
         "trajectory.tum",
         "gpe.tum",
         "graph.g2o",
@@ -63,6 +64,22 @@ fn simulated_home_writes_every_output_and_repeats_bit_for_bit() {
     ] {
         assert!(a.join(f).is_file(), "{f} missing");
     }
+    // result.mcap: the map at the start and the end, the path, one pose per scan.
+    let bytes = std::fs::read(a.join("result.mcap")).expect("result.mcap");
+    let mut topics = std::collections::BTreeMap::<String, usize>::new();
+    for m in mcap::MessageStream::new(&bytes).expect("an MCAP file") {
+        *topics
+            .entry(m.expect("message").channel.topic.clone())
+            .or_default() += 1;
+    }
+    let scans = std::fs::read_to_string(a.join("trajectory.tum"))
+        .expect("trajectory")
+        .lines()
+        .filter(|l| !l.starts_with('#'))
+        .count();
+    assert_eq!(topics.get("/map"), Some(&2), "{topics:?}");
+    assert_eq!(topics.get("/trajectory"), Some(&1), "{topics:?}");
+    assert_eq!(topics.get("/pose"), Some(&scans), "{topics:?}");
     let r = report(&a);
     for key in [
         "scans",

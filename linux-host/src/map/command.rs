@@ -102,8 +102,8 @@ pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<(
 fn summary(r: &MapReport, out: &std::path::Path) -> String {
     format!(
         "mapped {} scans ({} rejected) into {} keyframes with {} loop closures: {:.0} s of data \
-         in {:.1} s; wrote map.pgm, map.yaml, map.png, trajectory.tum, gpe.tum, graph.g2o, \
-         report.json to {}",
+         in {:.1} s; wrote map.pgm, map.yaml, map.png, result.mcap, trajectory.tum, gpe.tum, \
+         graph.g2o, report.json to {}",
         r.scans,
         r.scans_rejected,
         r.keyframes,

@@ -19,7 +19,8 @@
 //!   `Scan`, `Odometry` -> `Odometry`, `Imu` -> `Gyro` (`angular_velocity.z`), all stamped
 //!   with their header time. One topic per kind is used: the one named in
 //!   [`InputOptions::topics`], else the first that delivers a message (messages on other
-//!   topics of that kind are counted as skipped). The laser's mounting is
+//!   topics of that kind are counted as skipped); an odometry topic in a global frame (`map`,
+//!   `world`: a simulator's ground truth) is only taken when named. The laser's mounting is
 //!   [`InputOptions::laser_offset`] if given, else the chain of static transforms
 //!   (`/tf_static`) from the scan's frame up to the robot frame (the odometry's child frame,
 //!   else [`InputOptions::base_frame`]), else the identity (with a warning).
@@ -800,6 +801,10 @@ struct BagSource {
     offsets: HashMap<String, Se2>,
     /// Chosen topic per kind: scan, odometry, IMU.
     topics: [Option<Arc<str>>; 3],
+    /// The odometry topic was named by the user (then any frame is taken).
+    odom_named: bool,
+    /// Odometry topics passed over for their global frame.
+    passed_over: Vec<Arc<str>>,
     ignored: u64,
 }
 
@@ -813,8 +818,30 @@ impl BagSource {
             statics: HashMap::new(),
             offsets: HashMap::new(),
             topics: [None, None, None],
+            odom_named: opts.topics.odom.is_some(),
+            passed_over: Vec::new(),
             ignored: 0,
         }
+    }
+
+    /// Whether an odometry message on `topic` in frame `frame` is the wheel odometry to use.
+    /// Without a named topic, messages in a global frame (`map`, `world`) are passed over:
+    /// REP 105 puts odometry in the `odom` frame, and a `nav_msgs/Odometry` in a global frame
+    /// is a global pose (a simulator's ground truth, another localizer), which must not stand
+    /// in for the wheels.
+    fn odometry_topic(&mut self, topic: &Arc<str>, frame: &str) -> bool {
+        if !self.odom_named && self.topics[1].is_none() && matches!(strip(frame), "map" | "world") {
+            if !self.passed_over.iter().any(|t| t == topic) {
+                let msg = format!(
+                    "odometry topic {topic} is in the global frame {frame:?}, not wheel odometry; \
+                     passed over (name it with --odom-topic to use it)"
+                );
+                log::info!("{msg}");
+                self.passed_over.push(Arc::clone(topic));
+            }
+            return false;
+        }
+        self.chosen(1, topic)
     }
 
     /// Whether `topic` is the chosen topic of `kind` (locking onto the first one seen).
@@ -930,7 +957,9 @@ impl EventSource for BagSource {
                         odom: None,
                     })));
                 }
-                SensorMsg::Odom(odom) if self.chosen(1, &message.topic) => {
+                SensorMsg::Odom(odom)
+                    if self.odometry_topic(&message.topic, &odom.header.frame_id) =>
+                {
                     if self.base_frame.is_none() && !odom.child_frame_id.is_empty() {
                         self.base_frame = Some(strip(&odom.child_frame_id).to_owned());
                     }
@@ -1602,6 +1631,46 @@ RLASER 2 3.0 4.0 1.0 2.0 3.14159 1.0 2.0 0.0 5.1 h 0\n";
             stream.stats().laser_offset_source.as_deref(),
             Some("option")
         );
+    }
+
+    /// A simulator's bag carries ground truth as `nav_msgs/Odometry` in the `map` frame, ahead
+    /// of the wheel odometry: it is passed over unless named.
+    #[test]
+    fn ground_truth_in_the_map_frame_is_not_taken_for_wheel_odometry() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sim.mcap");
+        let mut bag = BagWriter::create(&path).unwrap();
+        for k in 1..=3i64 {
+            for (topic, frame, x) in [("/ground_truth", "map", 10.0), ("/odom", "odom", 1.0)] {
+                let mut odom = Odometry {
+                    header: Header::new(Time::from_nanos(k), frame),
+                    child_frame_id: "base_link".into(),
+                    ..Default::default()
+                };
+                odom.pose.pose = Pose::planar(x * k as f64, 0.0, 0.0);
+                bag.write(topic, k, &odom).unwrap();
+            }
+        }
+        bag.finish().unwrap();
+        let xs = |opts: &InputOptions| -> Vec<f64> {
+            let mut stream = open_input(&path, opts).unwrap();
+            collect(&mut stream)
+                .iter()
+                .filter_map(|e| match e {
+                    SensorEvent::Odometry { pose, .. } => Some(pose.x),
+                    _ => None,
+                })
+                .collect()
+        };
+        assert_eq!(xs(&InputOptions::default()), [1.0, 2.0, 3.0]);
+        let named = InputOptions {
+            topics: TopicSelection {
+                odom: Some("/ground_truth".into()),
+                ..TopicSelection::default()
+            },
+            ..InputOptions::default()
+        };
+        assert_eq!(xs(&named), [10.0, 20.0, 30.0]);
     }
 
     #[test]

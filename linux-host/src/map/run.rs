@@ -36,7 +36,7 @@ use super::output::{
     compose_global_grid, peak_heap_bytes, write_tum, MapProgress, MapReport, SubmapView,
 };
 use crate::graph_io::{write_g2o, FileEdge, GraphFile};
-use crate::io::map_out::{write_map_png, write_map_server};
+use crate::io::map_out::{write_map_png, write_map_server, write_result_mcap, TimedPose2};
 
 /// Settings of one `cloi map` run.
 #[derive(Debug, Clone)]
@@ -570,6 +570,11 @@ fn finish(
     write_map_server(out, "map", &grid.as_grid_ref())?;
     let xy: Vec<(f64, f64)> = trajectory.iter().map(|(_, p)| (p.x, p.y)).collect();
     write_map_png(&out.join("map.png"), &grid.as_grid_ref(), &xy)?;
+    let timed: Vec<TimedPose2> = trajectory
+        .iter()
+        .map(|(t, p)| (*t, (p.x, p.y, p.theta)))
+        .collect();
+    write_result_mcap(&out.join("result.mcap"), &grid.as_grid_ref(), &timed)?;
 
     // Largest step of the real-time pose beyond the front-end's step.
     let mut jump: f64 = 0.0;
