@@ -65,6 +65,52 @@ fn convert_bz2_log_to_bag_and_bag_to_tum() {
     assert!(stderr.contains("cannot convert .tum to .mcap"), "{stderr}");
 }
 
+/// A simulator's bag holds ground truth as `nav_msgs/Odometry` in the `map` frame beside the
+/// wheel odometry: the TUM file gets the wheel odometry alone, unless the other is named.
+#[test]
+fn bag_to_tum_takes_one_odometry_topic_and_not_a_global_one() {
+    use cloi_host::io::ros2::{Header, Odometry, Pose, Time};
+    let dir = tempfile::tempdir().unwrap();
+    let bag_path = dir.path().join("sim.mcap");
+    let mut bag = cloi_host::io::BagWriter::create(&bag_path).unwrap();
+    for k in 1..=3i64 {
+        for (topic, frame, x) in [("/ground_truth", "map", 10.0), ("/odom", "odom", 1.0)] {
+            let mut odom = Odometry {
+                header: Header::new(Time::from_nanos(k * 1_000_000_000), frame),
+                child_frame_id: "base_link".into(),
+                ..Default::default()
+            };
+            odom.pose.pose = Pose::planar(x * k as f64, 0.0, 0.0);
+            bag.write(topic, k * 1_000_000_000, &odom).unwrap();
+        }
+    }
+    bag.finish().unwrap();
+    let xs = |tum: &std::path::Path| -> Vec<f64> {
+        std::fs::read_to_string(tum)
+            .unwrap()
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .map(|l| l.split_whitespace().nth(1).unwrap().parse().unwrap())
+            .collect()
+    };
+    let tum = dir.path().join("odom.tum");
+    let (ok, v, stderr) = cloi(&["convert".as_ref(), bag_path.as_os_str(), tum.as_os_str()]);
+    assert!(ok, "{stderr}");
+    assert_eq!(v["odometry_topic"], "/odom");
+    assert_eq!(xs(&tum), [1.0, 2.0, 3.0]);
+    assert!(stderr.contains("several topics"), "{stderr}");
+    let gt = dir.path().join("gt.tum");
+    let (ok, _, stderr) = cloi(&[
+        "convert".as_ref(),
+        bag_path.as_os_str(),
+        gt.as_os_str(),
+        "--odom-topic".as_ref(),
+        "/ground_truth".as_ref(),
+    ]);
+    assert!(ok, "{stderr}");
+    assert_eq!(xs(&gt), [10.0, 20.0, 30.0]);
+}
+
 #[test]
 fn truncated_log_warns_or_fails_with_strict() {
     let dir = tempfile::tempdir().unwrap();

@@ -216,12 +216,28 @@ fn bag_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
     let mut reader = BagReader::open(&args.input, options)?;
     let mut poses = Vec::new();
     let mut odom_topics = std::collections::BTreeSet::new();
+    // One odometry topic: the named one, else the first to deliver outside a global frame
+    // (as `cloi map` chooses: an Odometry in `map`/`world` is a ground truth or a localizer).
+    let mut chosen: Option<String> = args.odom_topic.clone();
     let (mut scans, mut tf, mut other) = (0u64, 0u64, 0u64);
     for msg in reader.by_ref() {
         let msg = msg?;
         match &msg.msg {
             SensorMsg::Odom(o) => {
                 odom_topics.insert(msg.topic.to_string());
+                let global = matches!(o.header.frame_id.trim_start_matches('/'), "map" | "world");
+                match &chosen {
+                    Some(t) if **t == *msg.topic => {}
+                    Some(_) => {
+                        other += 1;
+                        continue;
+                    }
+                    None if global => {
+                        other += 1;
+                        continue;
+                    }
+                    None => chosen = Some(msg.topic.to_string()),
+                }
                 let p = o.pose.pose;
                 poses.push(StampedPose {
                     t: o.header.stamp.as_secs_f64(),
@@ -242,7 +258,9 @@ fn bag_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
     let stats = reader.stats().clone();
     if odom_topics.len() > 1 {
         log::warn!(
-            "odometry from several topics {odom_topics:?} is mixed; pick one with --odom-topic"
+            "odometry on several topics {odom_topics:?}: wrote {} (pick another with \
+             --odom-topic)",
+            chosen.as_deref().unwrap_or("none")
         );
     }
     write_tum(args.output_path(), &poses)?;
@@ -261,6 +279,7 @@ fn bag_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
         "output": args.output_path(),
         "topics": topics,
         "odometry_topics": odom_topics,
+        "odometry_topic": chosen,
         "odometry": odometry_summary(&poses),
         "scans": scans,
         "tf": tf,
