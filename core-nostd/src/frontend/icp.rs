@@ -32,6 +32,13 @@
 //!
 //! The information matrix is the final Hessian divided by the weighted residual variance
 //! (floored by `min_sigma` so perfect synthetic data does not give infinite confidence).
+//!
+//! Motion prior ([`align_with_prior`]): the pose is also measured by the odometry, with an
+//! information matrix. Adding that measurement to each Gauss-Newton step makes the step a
+//! maximum a posteriori one: directions the scan pins down hardly move, directions it leaves
+//! weak follow the prior in proportion to the two informations. The ICP cost is in squared
+//! metres without a variance, so the prior's information is multiplied by the current
+//! residual variance to share its units. The returned information is the scan's alone.
 
 use core::fmt;
 
