@@ -259,6 +259,7 @@ fn room_scan(pose: Se2, out: &mut ScanPoints<SCAN_BEAMS>) {
         angle_increment: inc as f32,
         range_min: 0.05,
         range_max: 12.0,
+        time_increment: 0.0,
     };
     // The geometry is valid by construction.
     let _ = preprocess(&ranges, &geometry, &PreprocessConfig::default(), out);

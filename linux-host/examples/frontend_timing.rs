@@ -40,6 +40,7 @@ fn read_front_scans(path: &std::path::Path, max: usize) -> Result<(Vec<Scan>, Be
             angle_increment: l.angle_increment,
             range_min: 0.05,
             range_max: 40.0,
+            time_increment: 0.0,
         });
         scans.push(Scan {
             ranges: l.ranges,

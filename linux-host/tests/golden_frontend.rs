@@ -47,6 +47,7 @@ fn intel_lidar_odometry_beats_wheel_odometry() {
         angle_increment: core::f32::consts::PI / 180.0,
         range_min: 0.05,
         range_max: 40.0,
+        time_increment: 0.0,
     };
     let pre = PreprocessConfig {
         voxel_size: 0.05,

@@ -187,6 +187,7 @@ pub fn process_event(state: &mut State, record: &LogRecord<'_>) -> EventCost {
                     angle_increment: g.angle_increment,
                     range_min: g.range_min,
                     range_max: g.range_max,
+                    time_increment: 0.0,
                 },
                 mounting: s.meta.laser_offset,
             };

@@ -44,6 +44,10 @@ impl ScanPoint {
 /// A preprocessed scan of at most `N` points.
 pub type ScanPoints<const N: usize = MAX_POINTS> = heapless::Vec<ScanPoint, N>;
 
+/// Longest sweep (first beam to last) taken as real, seconds: twice the period of the slowest
+/// common planar LiDAR (1 Hz).
+pub const MAX_SWEEP_SECONDS: f64 = 2.0;
+
 /// Beam geometry of a planar range scanner.
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
@@ -56,6 +60,26 @@ pub struct BeamGeometry {
     pub range_min: f32,
     /// Longest valid range, metres.
     pub range_max: f32,
+    /// Time between consecutive beams, seconds; beam `i` is measured at the scan's stamp plus
+    /// `i` times this (the stamp is the first beam's time, as in a ROS `LaserScan`). Zero when
+    /// the beams carry no time: the scan is then taken as measured at once.
+    pub time_increment: f32,
+}
+
+impl BeamGeometry {
+    /// Time from the first beam to the last of a scan of `beams` beams, seconds; zero when
+    /// the beams carry no usable time: a zero, negative or non-finite `time_increment`, or a
+    /// sweep longer than [`MAX_SWEEP_SECONDS`] (no planar LiDAR turns that slowly; such a
+    /// value is a unit error, and waiting for odometry to cover it would stall the input).
+    pub fn sweep_seconds(&self, beams: usize) -> f64 {
+        let dt = self.time_increment as f64;
+        let sweep = dt * beams.saturating_sub(1) as f64;
+        if dt.is_finite() && dt > 0.0 && sweep <= MAX_SWEEP_SECONDS {
+            sweep
+        } else {
+            0.0
+        }
+    }
 }
 
 /// Preprocessing parameters.
@@ -64,6 +88,12 @@ pub struct BeamGeometry {
 pub struct PreprocessConfig {
     /// Pose of the sensor in the robot frame.
     pub mounting: Se2,
+    /// Motion of the robot from the first beam's time to the last beam's, in the robot frame
+    /// at the first beam (the identity when the beams carry no time or the robot stood). Each
+    /// beam is moved back along it, at constant velocity, to where the robot was at the first
+    /// beam: a scan taken while the robot moves is otherwise bent by the motion during its
+    /// sweep, most visibly in turns.
+    pub sweep: Se2,
     /// Keep one beam in `decimation` (1 keeps every beam; 0 is treated as 1).
     pub decimation: u16,
     /// Voxel edge for downsampling, metres; `0` disables it.
@@ -81,6 +111,7 @@ impl Default for PreprocessConfig {
     fn default() -> Self {
         PreprocessConfig {
             mounting: Se2::IDENTITY,
+            sweep: Se2::IDENTITY,
             decimation: 1,
             voxel_size: 0.0,
             normal_neighbours: 3,
@@ -153,7 +184,8 @@ pub fn preprocess<const N: usize>(
         && g.range_max.is_finite()
         && g.range_min >= 0.0
         && g.range_min <= g.range_max
-        && config.mounting.is_finite())
+        && config.mounting.is_finite()
+        && config.sweep.is_finite())
     {
         return Err(ScanError::InvalidGeometry);
     }
@@ -167,6 +199,7 @@ pub fn preprocess<const N: usize>(
         libm::cos(config.mounting.theta) as f32,
     );
     let (mx, my) = (config.mounting.x as f32, config.mounting.y as f32);
+    let deskew = Deskew::new(&config.sweep, ranges.len());
     let mut valid = 0u32;
     for (i, &r) in ranges.iter().enumerate() {
         if r.is_nan() {
@@ -192,7 +225,7 @@ pub fn preprocess<const N: usize>(
         }
         let a = g.angle_min + g.angle_increment * i as f32;
         let (sx, sy) = (r * libm::cosf(a), r * libm::sinf(a));
-        let p = [mx + mc * sx - ms * sy, my + ms * sx + mc * sy];
+        let p = deskew.apply(i, [mx + mc * sx - ms * sy, my + ms * sx + mc * sy]);
         if out.push(ScanPoint { p, n: [0.0, 0.0] }).is_err() {
             stats.overflow += 1;
         }
@@ -204,6 +237,40 @@ pub fn preprocess<const N: usize>(
     stats.points = out.len() as u32;
     stats.with_normal = out.iter().filter(|p| p.has_normal()).count() as u32;
     Ok(stats)
+}
+
+/// The motion correction of the beams of one scan: beam `i` of `n` was measured when the robot
+/// had moved by the fraction `i / (n - 1)` of the sweep's motion, at constant velocity (the
+/// motion over one sweep, a tenth to a fifth of a second, is short enough for that).
+struct Deskew {
+    /// Per-beam translation and rotation, or `None` when there is nothing to correct.
+    step: Option<([f64; 2], f64)>,
+}
+
+impl Deskew {
+    fn new(sweep: &Se2, beams: usize) -> Self {
+        let moved = sweep.x != 0.0 || sweep.y != 0.0 || sweep.theta != 0.0;
+        let step = (moved && beams > 1).then(|| {
+            let k = 1.0 / (beams - 1) as f64;
+            ([sweep.x * k, sweep.y * k], sweep.theta * k)
+        });
+        Deskew { step }
+    }
+
+    /// Point `p` of beam `i` (robot frame at the beam's time) in the robot frame at the first
+    /// beam.
+    fn apply(&self, i: usize, p: [f32; 2]) -> [f32; 2] {
+        let Some(([dx, dy], dth)) = self.step else {
+            return p;
+        };
+        let f = i as f64;
+        let (s, c) = (libm::sin(dth * f), libm::cos(dth * f));
+        let (x, y) = (p[0] as f64, p[1] as f64);
+        [
+            (dx * f + c * x - s * y) as f32,
+            (dy * f + s * x + c * y) as f32,
+        ]
+    }
 }
 
 /// Unit normal of the best line through `pts` (principal axis of least spread), with the
@@ -404,6 +471,7 @@ pub(crate) mod tests {
             angle_increment: inc as f32,
             range_min: 0.05,
             range_max: 20.0,
+            time_increment: 0.0,
         }
     }
 
@@ -424,6 +492,7 @@ pub(crate) mod tests {
             angle_increment: 0.1,
             range_min: 0.1,
             range_max: 30.0,
+            time_increment: 0.0,
         };
         let mut out: ScanPoints<16> = heapless::Vec::new();
         let s = preprocess(&ranges, &g, &PreprocessConfig::default(), &mut out).unwrap();
@@ -460,6 +529,7 @@ pub(crate) mod tests {
                 angle_increment: 0.01,
                 range_min: 0.1,
                 range_max: 30.0,
+                time_increment: 0.0,
             };
             let cfg = PreprocessConfig {
                 decimation,
@@ -489,11 +559,92 @@ pub(crate) mod tests {
             angle_increment: f32::NAN,
             range_min: 0.1,
             range_max: 30.0,
+            time_increment: 0.0,
         };
         let mut out: ScanPoints<4> = heapless::Vec::new();
         assert_eq!(
             preprocess(&[1.0], &g, &PreprocessConfig::default(), &mut out),
             Err(ScanError::InvalidGeometry)
+        );
+    }
+
+    /// Distance from `p` (world frame) to the nearest wall.
+    fn to_nearest_wall(p: [f64; 2], walls: &[[f64; 4]]) -> f64 {
+        walls
+            .iter()
+            .map(|w| {
+                let (ex, ey) = (w[2] - w[0], w[3] - w[1]);
+                let t = (((p[0] - w[0]) * ex + (p[1] - w[1]) * ey) / (ex * ex + ey * ey))
+                    .clamp(0.0, 1.0);
+                libm::hypot(p[0] - w[0] - t * ex, p[1] - w[1] - t * ey)
+            })
+            .fold(f64::INFINITY, f64::min)
+    }
+
+    #[test]
+    fn sweep_motion_puts_the_beams_of_a_turning_scan_back_on_the_walls() {
+        // A robot turning at 1.5 rad/s and driving at 0.4 m/s during a 0.2 s sweep of 360
+        // beams, each measured from where the robot was at its own time.
+        let walls = room();
+        let n = 360usize;
+        let (v, w, sweep_s) = (0.4, 1.5, 0.2);
+        let dt = sweep_s / (n - 1) as f64;
+        let pose_at = |t: f64| Se2::new(v * t, 0.0, w * t);
+        let inc = 2.0 * core::f64::consts::PI / n as f64;
+        let amin = -core::f64::consts::PI;
+        let mut ranges = [0.0f32; 360];
+        for (i, r) in ranges.iter_mut().enumerate() {
+            let p = pose_at(dt * i as f64);
+            *r = ray_cast([p.x, p.y], p.theta + amin + inc * i as f64, &walls) as f32;
+        }
+        let g = BeamGeometry {
+            angle_min: amin as f32,
+            angle_increment: inc as f32,
+            range_min: 0.05,
+            range_max: 20.0,
+            time_increment: dt as f32,
+        };
+        assert!((g.sweep_seconds(n) - sweep_s).abs() < 1e-6);
+        // Worst distance of the scan's points, placed at the first beam's pose (the origin),
+        // from the walls.
+        let worst = |sweep: Se2| {
+            let cfg = PreprocessConfig {
+                sweep,
+                ..PreprocessConfig::default()
+            };
+            let mut out: ScanPoints<512> = heapless::Vec::new();
+            preprocess(&ranges, &g, &cfg, &mut out).unwrap();
+            out.iter()
+                .map(|q| to_nearest_wall([q.p[0] as f64, q.p[1] as f64], &walls))
+                .fold(0.0, f64::max)
+        };
+        let bent = worst(Se2::IDENTITY);
+        let corrected = worst(pose_at(sweep_s));
+        // Uncorrected, the last beams are off by the 0.3 rad turned during the sweep.
+        assert!(bent > 0.3, "{bent}");
+        // Corrected at constant velocity along the chord: off by the arc's sagitta at most.
+        assert!(corrected < 0.01, "{corrected}");
+        // Beams without usable times give no sweep to correct.
+        let untimed = BeamGeometry {
+            time_increment: 0.0,
+            ..g
+        };
+        assert_eq!(untimed.sweep_seconds(n), 0.0);
+        assert_eq!(
+            BeamGeometry {
+                time_increment: f32::NAN,
+                ..g
+            }
+            .sweep_seconds(n),
+            0.0
+        );
+        assert_eq!(
+            BeamGeometry {
+                time_increment: 1.0,
+                ..g
+            }
+            .sweep_seconds(n),
+            0.0
         );
     }
 
@@ -504,6 +655,7 @@ pub(crate) mod tests {
             angle_increment: 0.0,
             range_min: 0.1,
             range_max: 30.0,
+            time_increment: 0.0,
         };
         let cfg = PreprocessConfig {
             mounting: Se2::new(0.2, 0.1, core::f64::consts::FRAC_PI_2),

@@ -59,6 +59,7 @@ impl Slot {
             angle_increment: 0.0,
             range_min: 0.0,
             range_max: 0.0,
+            time_increment: 0.0,
         },
         mounting: Se2::IDENTITY,
     };
@@ -273,7 +274,10 @@ impl<'s> Feeder<'s> {
         let mut input = *scan;
         input.stamp = stamp;
         input.geometry.range_min = input.geometry.range_min.max(self.range_min);
-        if self.gate.passes(stamp, stamp, own_odometry) {
+        // The odometry must cover the whole sweep: the last beam is corrected with it too.
+        let seconds = input.geometry.sweep_seconds(input.ranges.len());
+        let end = stamp.saturating_add(libm::round(seconds * 1e9) as i64);
+        if self.gate.passes(stamp, end, own_odometry) {
             return Some(Pushed {
                 stamp: original,
                 result: m.push_scan_probed(&input, deadline_passed, probe),
@@ -286,7 +290,7 @@ impl<'s> Feeder<'s> {
                 result: Err(MapperError::TooManyBeams),
             });
         }
-        match self.gate.admit(stamp, stamp, own_odometry) {
+        match self.gate.admit(stamp, end, own_odometry) {
             // `passes` said no, so the gate holds it.
             Admit::Now | Admit::Held => {
                 let _ = self.held.push_back(&input, original);

@@ -47,7 +47,7 @@ mod types;
 use crate::backend::prune::PruneScratch;
 use crate::backend::schedule::{BackendSchedule, ScheduleParams};
 use crate::frontend::lidar::{FrontendStep, LidarFrontend, LidarParams, MotionNoise};
-use crate::frontend::odometry::{OdomIncrement, OdometryFusion};
+use crate::frontend::odometry::{OdomError, OdomIncrement, OdometryFusion};
 use crate::frontend::scan::{BeamGeometry, ScanPoint, ScanPoints};
 use crate::frontend::{preprocess, PointMap, PreprocessConfig};
 use crate::geom::{Cov3, Se2};
@@ -446,6 +446,26 @@ impl<'r> Mapper<'r> {
         (pose, motion)
     }
 
+    /// The robot's motion during the sweep of `scan` (first beam to last), from the fused
+    /// odometry; the identity when the beams carry no time or the odometry does not cover the
+    /// sweep (counted).
+    fn sweep_motion(&mut self, scan: &ScanInput<'_>) -> Se2 {
+        let seconds = scan.geometry.sweep_seconds(scan.ranges.len());
+        if seconds <= 0.0 {
+            return Se2::IDENTITY;
+        }
+        let end = scan.stamp.saturating_add(libm::round(seconds * 1e9) as i64);
+        match self.odometry.increment(scan.stamp, end) {
+            Ok(inc) => inc.motion.pose,
+            // Without any odometry (a LiDAR-only input) there is nothing to correct with.
+            Err(OdomError::NoData) => Se2::IDENTITY,
+            Err(_) => {
+                self.st.stats.scans_not_deskewed += 1;
+                Se2::IDENTITY
+            }
+        }
+    }
+
     /// Checks the stamp and preprocesses `scan` into `self.scan`.
     fn preprocess(&mut self, scan: &ScanInput<'_>) -> Result<(), MapperError> {
         if self.st.last_stamp.is_some_and(|t| scan.stamp <= t) {
@@ -458,6 +478,7 @@ impl<'r> Mapper<'r> {
         };
         let pre = PreprocessConfig {
             mounting: scan.mounting,
+            sweep: self.sweep_motion(scan),
             ..self.cfg.preprocess
         };
         let Ok(stats) = preprocess(scan.ranges, &geometry, &pre, self.scan) else {

@@ -74,6 +74,7 @@ fn geometry() -> BeamGeometry {
         angle_increment: 2.0 * core::f32::consts::PI / BEAMS as f32,
         range_min: 0.05,
         range_max: 20.0,
+        time_increment: 0.0,
     }
 }
 

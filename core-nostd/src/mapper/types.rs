@@ -16,6 +16,9 @@ pub struct MapperStats {
     pub scans_empty: u32,
     /// Beams dropped as NaN or infinite.
     pub beams_invalid: u32,
+    /// Scans whose beams carry times but whose sweep the odometry did not cover, so they were
+    /// taken as measured at once (not corrected for the motion during the sweep).
+    pub scans_not_deskewed: u32,
     /// Scans whose ICP failed or was too weak (the odometry seed was used).
     pub icp_failures: u32,
     /// Scans matched with a degenerate direction left at the seed.
@@ -68,6 +71,7 @@ impl MapperStats {
         scans_out_of_order: 0,
         scans_empty: 0,
         beams_invalid: 0,
+        scans_not_deskewed: 0,
         icp_failures: 0,
         icp_degenerate: 0,
         odometry_gaps: 0,

@@ -108,6 +108,9 @@ pub struct ScanEvent {
     pub range_min: f32,
     /// Farthest valid range, metres.
     pub range_max: f32,
+    /// Time between beams, seconds, the first beam at `t_ns` (0: the source gives no beam
+    /// times, as CARMEN logs do not).
+    pub time_increment: f32,
     /// Pose of the laser on the robot.
     pub laser_offset: Se2,
     /// Odometry pose attached to the scan line if the source has one (CARMEN `FLASER`,
@@ -611,6 +614,7 @@ impl EventSource for CarmenSource {
                         angle_increment: laser.angle_increment,
                         range_min: 0.0,
                         range_max,
+                        time_increment: 0.0,
                         laser_offset,
                         odom,
                     }));
@@ -759,6 +763,7 @@ impl<R: Read> CloilogSource<R> {
                         angle_increment: m.geometry.angle_increment,
                         range_min: m.geometry.range_min,
                         range_max: self.range_max_override.unwrap_or(m.geometry.range_max),
+                        time_increment: 0.0,
                         laser_offset,
                         odom: m.odom,
                     })
@@ -953,6 +958,7 @@ impl EventSource for BagSource {
                         angle_increment: scan.angle_increment,
                         range_min: scan.range_min,
                         range_max: self.range_max_override.unwrap_or(scan.range_max),
+                        time_increment: scan.time_increment,
                         ranges: scan.ranges,
                         odom: None,
                     })));
@@ -1025,6 +1031,7 @@ impl SampleSink for ChannelSink {
                 angle_increment: scan.angle_increment,
                 range_min: scan.range_min,
                 range_max: scan.range_max,
+                time_increment: scan.time_increment,
                 laser_offset: self.laser_offset,
                 odom: None,
             }),

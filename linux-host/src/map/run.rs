@@ -181,6 +181,7 @@ impl Driver<'_> {
                         angle_increment: s.angle_increment,
                         range_min: s.range_min,
                         range_max: s.range_max,
+                        time_increment: s.time_increment,
                     },
                     mounting: s.laser_offset,
                 };
@@ -707,6 +708,7 @@ fn stats_json(s: &MapperStats) -> serde_json::Value {
         "icp_degenerate": s.icp_degenerate,
         "odometry_gaps": s.odometry_gaps,
         "odometry_stalls": s.odometry_stalls,
+        "scans_not_deskewed": s.scans_not_deskewed,
         "odometry_rejected": s.odometry_rejected,
         "keyframes": s.keyframes,
         "keyframes_dropped": s.keyframes_dropped,
