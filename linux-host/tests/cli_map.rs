@@ -320,3 +320,76 @@ fn an_input_without_scans_says_what_to_check() {
         "{stderr}"
     );
 }
+
+/// Runs `cloi map` on 40 s of the simulated home with `CLOI_MAP_INJECT_FAULT=<thread>`, and
+/// returns its exit status and stderr, or fails if it has not ended within two minutes.
+fn map_with_injected_fault(thread: &str) -> (std::process::ExitStatus, String) {
+    use std::io::Read as _;
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(["map", "--quiet", "--sim-duration", "40", "--out"])
+        .arg(tmp.path().join("out"))
+        .env("CLOI_MAP_INJECT_FAULT", thread)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("cloi starts");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("wait") {
+            break status;
+        }
+        if std::time::Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("cloi map with a failing {thread} thread hangs");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    let mut stderr = String::new();
+    child
+        .stderr
+        .take()
+        .expect("stderr")
+        .read_to_string(&mut stderr)
+        .expect("stderr text");
+    (status, stderr)
+}
+
+#[test]
+fn threaded_run_stops_with_an_error_when_either_thread_fails() {
+    for thread in ["frontend", "backend"] {
+        let (status, stderr) = map_with_injected_fault(thread);
+        assert!(!status.success(), "{thread}: exit 0\n{stderr}");
+        let name = if thread == "frontend" {
+            "front-end"
+        } else {
+            "back-end"
+        };
+        assert!(
+            stderr.contains(&format!("injected {name} failure")),
+            "{thread}: the panic message is missing\n{stderr}"
+        );
+    }
+}
+
+#[test]
+fn report_says_whether_the_run_is_bit_reproducible() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    for (flag, expected) in [
+        (None, "threaded"),
+        (Some("--deterministic"), "deterministic"),
+    ] {
+        let dir = tmp.path().join(expected);
+        let mut args = vec!["map", "--quiet", "--sim-duration", "20"];
+        args.extend(flag);
+        args.extend(["--out", dir.to_str().expect("utf-8")]);
+        let out = cloi(&args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert_eq!(report(&dir)["reproducibility"], expected);
+    }
+}

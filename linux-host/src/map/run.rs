@@ -357,6 +357,7 @@ fn drive(
     } else {
         let shared = Mutex::new(mapper);
         let done = std::sync::atomic::AtomicBool::new(false);
+        let fault = injected_fault();
         std::thread::scope(|s| -> Result<()> {
             let backend = s.spawn(|| {
                 // Lowest priority for the back-end (nice 19 under Linux's normal policy); when
@@ -368,6 +369,9 @@ fn drive(
                 while !done.load(std::sync::atomic::Ordering::Acquire) {
                     let idle = match shared.lock() {
                         Ok(mut m) => {
+                            if fault == Some(InjectedFault::Backend) && m.stats().scans >= 10 {
+                                panic!("injected back-end failure ({FAULT_ENV})");
+                            }
                             let now = m.stats().scans as i64;
                             if delay_ns > 0 && now == last_run {
                                 true
@@ -399,6 +403,13 @@ fn drive(
                 };
                 let is_scan = matches!(ev, SensorEvent::Scan(_));
                 if is_scan && scans >= max_scans {
+                    break;
+                }
+                if is_scan && scans == 10 && fault == Some(InjectedFault::Frontend) {
+                    panic!("injected front-end failure ({FAULT_ENV})");
+                }
+                if backend.is_finished() {
+                    result = Err(anyhow!("the back-end thread stopped during the run"));
                     break;
                 }
                 let started = Instant::now();
@@ -607,6 +618,14 @@ fn finish(
     report
         .extra
         .insert("deterministic".into(), json!(settings.deterministic));
+    report.extra.insert(
+        "reproducibility".into(),
+        json!(if settings.deterministic {
+            "deterministic"
+        } else {
+            "threaded"
+        }),
+    );
     report
         .extra
         .insert("backend_delay_s".into(), json!(settings.backend_delay_s));
@@ -727,6 +746,26 @@ fn stats_json(s: &MapperStats) -> serde_json::Value {
         "prunes": s.prunes,
         "nodes_pruned": s.nodes_pruned,
     })
+}
+
+/// Hidden test hook: `CLOI_MAP_INJECT_FAULT=frontend|backend` makes that thread of the
+/// threaded schedule panic, so tests can check that a failure in either thread ends the
+/// run with an error instead of a hang.
+const FAULT_ENV: &str = "CLOI_MAP_INJECT_FAULT";
+
+/// The thread a test asked to fail (see [`FAULT_ENV`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum InjectedFault {
+    Frontend,
+    Backend,
+}
+
+fn injected_fault() -> Option<InjectedFault> {
+    match std::env::var(FAULT_ENV).ok()?.as_str() {
+        "frontend" => Some(InjectedFault::Frontend),
+        "backend" => Some(InjectedFault::Backend),
+        _ => None,
+    }
 }
 
 /// Raises its flag when dropped, also while a panic unwinds.
