@@ -236,6 +236,10 @@ pub fn umeyama(
     }
     let sigma_x = xc.norm_squared() / n as f64;
     let cov = &yc * xc.transpose() / n as f64;
+    // Coordinates near f64::MAX overflow the sums, and an SVD of a non-finite matrix panics.
+    if !sigma_x.is_finite() || cov.iter().any(|v| !v.is_finite()) {
+        bail!("coordinates too large to align (their squares overflow)");
+    }
     let svd = cov.svd(true, true);
     let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
         bail!("SVD failed in the alignment");
@@ -369,6 +373,17 @@ mod tests {
         };
         assert_eq!(associate(&a, &b, 0.01), vec![(0, 0), (2, 3)]);
         assert_eq!(associate(&b, &a, 0.01), vec![(0, 0), (3, 2)]);
+    }
+
+    #[test]
+    fn umeyama_refuses_coordinates_whose_squares_overflow() {
+        let x = [
+            Vector3::new(0.0, 0.0, 0.0),
+            Vector3::new(1e308, 0.0, 0.0),
+            Vector3::new(0.0, 1.0, 0.0),
+        ];
+        let err = umeyama(&x, &x, 3, true).expect_err("overflowing input");
+        assert!(err.to_string().contains("too large"), "{err}");
     }
 
     #[test]
