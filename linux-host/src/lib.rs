@@ -5,12 +5,13 @@
 
 pub mod cli;
 pub mod corrupt;
-pub mod dataset;
 pub mod eval;
-pub mod graph_io;
-pub mod io;
 pub mod map;
 pub mod optimize;
 pub mod prune;
 pub mod prune_online;
 pub mod sim;
+
+/// The file formats: the crate [`cloi_io`].
+pub use cloi_io as io;
+pub use cloi_io::{dataset, graph_io};

@@ -7,7 +7,7 @@
 //!
 //! [`RosMessage`] ties a struct to its ROS type name (`sensor_msgs/msg/LaserScan`) and to the
 //! `ros2msg` schema text that MCAP files carry, so that independent readers (rosbags, the
-//! Python `mcap` reader, Foxglove) can decode the bags that [`crate::io::bag::BagWriter`] writes.
+//! Python `mcap` reader, Foxglove) can decode the bags that [`crate::bag::BagWriter`] writes.
 
 use anyhow::{Context, Result};
 use serde::de::DeserializeOwned;
@@ -93,7 +93,7 @@ impl Time {
     }
 
     /// The time nearest to `seconds` after the epoch (an `f64` near 1e9 s resolves ~120 ns;
-    /// parse decimal text with [`crate::io::parse_stamp_ns`] where exactness matters).
+    /// parse decimal text with [`crate::parse_stamp_ns`] where exactness matters).
     pub fn from_secs_f64(seconds: f64) -> Self {
         Self::from_nanos((seconds * 1e9).round() as i64)
     }

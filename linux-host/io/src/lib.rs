@@ -1,4 +1,8 @@
-//! File formats: one thin module per format, over maintained crates.
+//! # cloi-io
+//!
+//! The file formats of CLOi-Mapper on Linux, one thin module per format over maintained
+//! crates, shared by the simulator (`cloi-sim`), the evaluation (`cloi-eval`) and the `cloi`
+//! command (`cloi-host`).
 //!
 //! * [`ros2`]: ROS 2 message structs (serde + CDR) and their `ros2msg` schemas.
 //! * [`bag`]: writing ROS 2 bags as MCAP files.
@@ -8,8 +12,10 @@
 //! * [`tum`]: TUM and KITTI trajectories.
 //! * [`map_out`]: `map.pgm` + `map.yaml`, `map.png` with the trajectory, `result.mcap`.
 //! * [`cloilog`]: CARMEN logs to the firmware's compact binary sensor log.
+//! * [`graph_io`]: pose-graph files (g2o, TORO) and ground truth for them.
 //! * [`cli`]: `cloi convert`.
 //! * [`atomic`]: atomic file output (temporary file, then rename), used by every writer.
+//! * [`dataset`]: where the shared evaluation datasets live, for tests and benchmarks.
 
 pub mod atomic;
 pub mod bag;
@@ -18,6 +24,8 @@ pub mod carmen;
 pub mod cli;
 pub mod cloilog;
 pub mod convert;
+pub mod dataset;
+pub mod graph_io;
 pub mod map_out;
 pub mod ros2;
 pub mod tum;

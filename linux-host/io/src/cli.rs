@@ -8,10 +8,10 @@ use anyhow::{bail, Result};
 use clap::Args;
 use serde_json::json;
 
-use super::bag_read::{BagReadOptions, BagReader, SensorMsg, TopicSelection};
-use super::cloilog::carmen_to_cloilog;
-use super::convert::carmen_to_bag;
-use super::tum::{write_tum, StampedPose};
+use crate::bag_read::{BagReadOptions, BagReader, SensorMsg, TopicSelection};
+use crate::cloilog::carmen_to_cloilog;
+use crate::convert::carmen_to_bag;
+use crate::tum::{write_tum, StampedPose};
 
 /// Arguments of `cloi convert`.
 #[derive(Debug, Args)]
@@ -293,12 +293,12 @@ fn bag_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
 }
 
 fn carmen_odometry_to_tum(args: &ConvertArgs) -> Result<serde_json::Value> {
-    let mut reader = super::carmen::CarmenReader::open(&args.input, args.strict)?;
-    let mut conv = super::convert::CarmenToRos::new(args.range_max);
+    let mut reader = crate::carmen::CarmenReader::open(&args.input, args.strict)?;
+    let mut conv = crate::convert::CarmenToRos::new(args.range_max);
     let mut poses = Vec::new();
     for record in reader.by_ref() {
         for m in conv.convert(&record?) {
-            if let super::convert::RosOut::Odom(o) = m.msg {
+            if let crate::convert::RosOut::Odom(o) = m.msg {
                 let (x, y, th) = o.pose.pose.to_planar();
                 poses.push(StampedPose::planar(o.header.stamp.as_secs_f64(), x, y, th));
             }

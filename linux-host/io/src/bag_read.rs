@@ -26,7 +26,7 @@ use std::sync::Arc;
 
 use anyhow::{bail, Context, Result};
 
-use super::ros2::{
+use crate::ros2::{
     CompressedImage, Image, Imu, LaserScan, Odometry, PoseWithCovarianceStamped, RosMessage,
     TfMessage,
 };
@@ -596,8 +596,8 @@ mod tests {
     use std::io::Cursor;
 
     use super::*;
-    use crate::io::bag::{BagCompression, BagWriter};
-    use crate::io::ros2::{Header, Time};
+    use crate::bag::{BagCompression, BagWriter};
+    use crate::ros2::{Header, Time};
 
     fn bag_bytes(times: &[i64], compression: BagCompression) -> Vec<u8> {
         let mut bag = BagWriter::new_with(Cursor::new(Vec::new()), compression).unwrap();

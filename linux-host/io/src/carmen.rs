@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 
-use super::parse_stamp_ns;
+use crate::parse_stamp_ns;
 
 /// Which laser a scan comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -25,9 +25,9 @@ use std::path::Path;
 
 use anyhow::Result;
 
-use super::bag::BagWriter;
-use super::carmen::{CarmenLaser, CarmenReader, CarmenRecord, CarmenStats, LaserSource};
-use super::ros2::{
+use crate::bag::BagWriter;
+use crate::carmen::{CarmenLaser, CarmenReader, CarmenRecord, CarmenStats, LaserSource};
+use crate::ros2::{
     Header, LaserScan, Odometry, Pose, TfMessage, Time, Transform, TransformStamped,
 };
 
@@ -96,7 +96,7 @@ fn odom_tf(odom: &Odometry) -> TfMessage {
             header: odom.header.clone(),
             child_frame_id: odom.child_frame_id.clone(),
             transform: Transform {
-                translation: super::ros2::Vector3 {
+                translation: crate::ros2::Vector3 {
                     x: p.position.x,
                     y: p.position.y,
                     z: p.position.z,
@@ -278,7 +278,7 @@ pub fn carmen_to_bag(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::io::carmen::reader_from_bytes;
+    use crate::carmen::reader_from_bytes;
 
     #[test]
     fn maps_lines_to_messages() {

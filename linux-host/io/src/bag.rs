@@ -20,8 +20,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{anyhow, bail, Context, Result};
 use tempfile::NamedTempFile;
 
-use super::atomic::AtomicFile;
-use super::ros2::RosMessage;
+use crate::atomic::AtomicFile;
+use crate::ros2::RosMessage;
 
 /// Chunk compression of written bags.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -219,7 +219,7 @@ mod tests {
     use std::io::Cursor;
 
     use super::*;
-    use crate::io::ros2::{Header, LaserScan, Odometry, Pose, Time};
+    use crate::ros2::{Header, LaserScan, Odometry, Pose, Time};
 
     #[test]
     fn written_bag_reads_back_with_the_mcap_crate() {

@@ -1,7 +1,7 @@
 //! CARMEN logs to the compact binary sensor log of the firmware (`.cloilog`, format in
 //! [`cloi_core::sensor::log`]): `cloi convert IN.clf --to cloilog --out OUT.cloilog`.
 //!
-//! The records are the ones the ROS 2 conversion ([`super::convert::CarmenToRos`]) makes, so a
+//! The records are the ones the ROS 2 conversion ([`crate::convert::CarmenToRos`]) makes, so a
 //! run on the `.cloilog` sees the same events as a run on the bag or the CARMEN log:
 //! * every `/odom` message becomes an odometry record (the `ODOM` lines; a log without them
 //!   gets the odometry pose of each front scan, until the first `ODOM` line);
@@ -27,10 +27,10 @@ use cloi_core::sensor::log::{
 use cloi_core::sensor::{ScanGeometry, Timestamp};
 use cloi_core::Se2;
 
-use super::atomic::AtomicFile;
-use super::carmen::{CarmenReader, CarmenRecord, CarmenStats};
-use super::convert::{CarmenToRos, RosOut};
-use super::ros2::Transform;
+use crate::atomic::AtomicFile;
+use crate::carmen::{CarmenReader, CarmenRecord, CarmenStats};
+use crate::convert::{CarmenToRos, RosOut};
+use crate::ros2::Transform;
 
 /// Counts of a conversion to `.cloilog`.
 #[derive(Debug, Clone, Default, PartialEq)]

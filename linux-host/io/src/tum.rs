@@ -8,8 +8,8 @@ use std::path::Path;
 use anyhow::{bail, Context, Result};
 use nalgebra::{Matrix3, Quaternion, UnitQuaternion, Vector3};
 
-use super::atomic;
-use super::carmen::open_maybe_compressed;
+use crate::atomic;
+use crate::carmen::open_maybe_compressed;
 
 /// One pose of a 3D trajectory.
 #[derive(Debug, Clone, Copy, PartialEq)]

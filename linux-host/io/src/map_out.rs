@@ -11,9 +11,9 @@ use std::path::Path;
 use anyhow::{bail, Result};
 use image::{GrayImage, Luma, Rgb, RgbImage};
 
-use super::atomic;
-use super::bag::BagWriter;
-use super::ros2::{Header, MapMetaData, OccupancyGrid, Path as PathMsg, Pose, PoseStamped, Time};
+use crate::atomic;
+use crate::bag::BagWriter;
+use crate::ros2::{Header, MapMetaData, OccupancyGrid, Path as PathMsg, Pose, PoseStamped, Time};
 
 /// A borrowed occupancy grid.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -259,8 +259,8 @@ pub fn write_result_mcap(path: &Path, grid: &GridRef<'_>, trajectory: &[TimedPos
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::io::bag_read::{BagReadOptions, BagReader};
-    use crate::io::ros2::RosMessage;
+    use crate::bag_read::{BagReadOptions, BagReader};
+    use crate::ros2::RosMessage;
 
     fn grid(cells: &[i8]) -> GridRef<'_> {
         GridRef {

@@ -10,7 +10,9 @@ pub fn shared_data_dir() -> PathBuf {
     if let Some(dir) = std::env::var_os("CLOI_DATA_DIR") {
         return PathBuf::from(dir);
     }
+    // This crate is `<workspace>/linux-host/io`.
     Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
         .join("..")
         .join("..")
         .join("shared")
