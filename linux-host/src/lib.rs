@@ -10,8 +10,9 @@ pub mod map;
 pub mod optimize;
 pub mod prune;
 pub mod prune_online;
-pub mod sim;
 
 /// The file formats: the crate [`cloi_io`].
 pub use cloi_io as io;
 pub use cloi_io::{dataset, graph_io};
+/// The simulator: the crate [`cloi_sim`].
+pub use cloi_sim as sim;

@@ -1,7 +1,7 @@
 //! Procedural textures: albedo (0 = black, 1 = white, > 1 = emissive light) of the ceiling,
 //! walls, posters and floor, as pure functions of position so frames are deterministic.
 
-use super::world::{FeatureKind, Material, World, P2};
+use crate::world::{FeatureKind, Material, World, P2};
 
 /// A hash of an integer lattice point to `[0, 1)`.
 #[inline]

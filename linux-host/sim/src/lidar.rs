@@ -15,8 +15,8 @@ use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-use super::path::{MotionLimits, Trajectory};
-use super::world::{Material, World};
+use crate::path::{MotionLimits, Trajectory};
+use crate::world::{Material, World};
 
 /// LiDAR parameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -166,7 +166,7 @@ pub fn scan(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::world::{LegSpec, RouteSpec, WorldFile};
+    use crate::world::{LegSpec, RouteSpec, WorldFile};
     use rand::SeedableRng;
 
     fn room() -> (World, Trajectory, MotionLimits) {

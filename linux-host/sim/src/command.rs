@@ -7,13 +7,13 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 
-use super::builtin;
-use super::engine::{Rig, SensorSet, SimConfig, Simulation, Summary};
-use super::generate;
-use super::output::{self, BagSink, Tee, TumSink};
-use super::path;
-use super::preview;
-use super::world::{World, WorldFile};
+use crate::builtin;
+use crate::engine::{Rig, SensorSet, SimConfig, Simulation, Summary};
+use crate::generate;
+use crate::output::{self, BagSink, Tee, TumSink};
+use crate::path;
+use crate::preview;
+use crate::world::{World, WorldFile};
 
 /// Arguments of `cloi sim`.
 #[derive(Debug, Args)]
@@ -211,7 +211,7 @@ pub fn run(args: &SimArgs, out: &mut dyn Write) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::io::ros2::{LaserScan, RosMessage};
+    use cloi_io::ros2::{LaserScan, RosMessage};
     use std::collections::BTreeMap;
 
     fn args(out: &Path, seed: u64) -> SimArgs {

@@ -20,11 +20,11 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
 
-use super::camera::{Camera, CameraParams, DirtyLens, Frame};
-use super::lidar::{self, LidarParams, Scan};
-use super::odometry::{Gyro, GyroParams, ImuReading, OdomReading, WheelOdometry, WheelParams};
-use super::path::{MotionLimits, State, Trajectory};
-use super::world::{FaultKind, FaultSpec, RegionKind, RobotKind, World};
+use crate::camera::{Camera, CameraParams, DirtyLens, Frame};
+use crate::lidar::{self, LidarParams, Scan};
+use crate::odometry::{Gyro, GyroParams, ImuReading, OdomReading, WheelOdometry, WheelParams};
+use crate::path::{MotionLimits, State, Trajectory};
+use crate::world::{FaultKind, FaultSpec, RegionKind, RobotKind, World};
 
 /// Which sensors the robot carries (the paper's sensor combinations).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -700,7 +700,7 @@ impl Simulation {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::builtin;
+    use crate::builtin;
 
     /// A sink that turns every sample into bytes.
     struct Bytes(Vec<u8>);

@@ -1,3 +1,5 @@
+//! # cloi-sim
+//!
 //! The simulator behind `cloi sim`: worlds with exact ground truth, and the sensors of a
 //! cleaning or guide robot (2D LiDAR, wheel odometry, gyro, one or two ceiling cameras) with
 //! documented noise, realistic timestamps and scheduled faults.

@@ -8,8 +8,8 @@ use std::path::Path;
 use anyhow::{Context, Result};
 use image::{Rgb, RgbImage};
 
-use super::engine::Simulation;
-use super::world::{FeatureKind, Material, RegionKind, P2};
+use crate::engine::Simulation;
+use crate::world::{FeatureKind, Material, RegionKind, P2};
 
 fn line(img: &mut RgbImage, a: (f64, f64), b: (f64, f64), c: Rgb<u8>) {
     let n = ((b.0 - a.0).abs().max((b.1 - a.1).abs()).ceil() as usize).max(1);
@@ -139,5 +139,5 @@ pub fn write(sim: &Simulation, path: &Path, max_side: u32, at: f64) -> Result<()
         image::ImageFormat::Png,
     )
     .context("encoding the preview PNG")?;
-    super::output::write_bytes(path, &bytes)
+    crate::output::write_bytes(path, &bytes)
 }

@@ -5,7 +5,7 @@
 
 use cloi_core::geom::{wrap_angle, Se2};
 
-use super::world::{LegSpec, RouteSpec, P2};
+use crate::world::{LegSpec, RouteSpec, P2};
 
 /// Speed limits of a robot.
 #[derive(Clone, Copy, Debug, PartialEq)]

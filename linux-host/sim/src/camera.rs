@@ -12,7 +12,7 @@
 //! **Rendering.** Every pixel's ray (unprojected once per camera) is cast from the camera
 //! centre: it hits the first wall part below the wall's top edge (glass is see-through), or else
 //! the ceiling plane (rays going up) or the floor. Surfaces are procedurally textured
-//! ([`super::texture`]); lights are emissive and saturate. Per frame, an exposure gain
+//! ([`crate::texture`]); lights are emissive and saturate. Per frame, an exposure gain
 //! `exp(N(0, gain_sigma²))` scales the image; each pixel then gets read noise and shot noise
 //! `N(0, read_noise² + shot_noise² · I)` (in grey levels) before rounding to 8 bits. Optional
 //! motion blur averages three renders spread over the exposure time. A dirty lens blurs, lowers
@@ -22,8 +22,8 @@ use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 
-use super::texture;
-use super::world::{Material, World};
+use crate::texture;
+use crate::world::{Material, World};
 
 /// Lens model.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -487,7 +487,7 @@ fn apply_dirty_lens(img: &mut [f32], w: usize, h: usize, d: DirtyLens) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::world::WorldFile;
+    use crate::world::WorldFile;
     use rand::SeedableRng;
 
     /// Camera at the origin of an empty room heading +x; body (x, y, z) of a point.

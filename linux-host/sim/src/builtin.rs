@@ -4,7 +4,7 @@
 
 use toml::Spanned;
 
-use super::world::{
+use crate::world::{
     BoxSpec, CeilingSpec, FaultKind, FaultSpec, FeatureKind, FeatureSpec, LegSpec, Material,
     OdometrySpec, PosterSpec, RegionKind, RegionSpec, RobotKind, RouteSpec, WallSpec, WorldFile,
     P2,
@@ -517,8 +517,8 @@ pub fn airport() -> WorldFile {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::path::route_points;
-    use crate::sim::world::World;
+    use crate::path::route_points;
+    use crate::world::World;
 
     #[test]
     fn builtin_worlds_are_large_enough_and_their_routes_are_collision_free() {

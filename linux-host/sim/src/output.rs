@@ -1,5 +1,5 @@
 //! Thin adapters from the simulated stream to files: a ROS 2 bag (through
-//! [`crate::io::bag::BagWriter`]), the ground truth in TUM format, and a JSON sidecar with the
+//! [`cloi_io::bag::BagWriter`]), the ground truth in TUM format, and a JSON sidecar with the
 //! configuration, sensor parameters and fault schedule (including the optimisation delays the
 //! mapper must honour).
 //!
@@ -15,11 +15,11 @@ use std::path::Path;
 
 use anyhow::Result;
 
-use super::camera::Lens;
-use super::engine::{Payload, Sample, SampleSink, Simulation};
-use crate::io::atomic::AtomicFile;
-use crate::io::bag::BagWriter;
-use crate::io::ros2::{
+use crate::camera::Lens;
+use crate::engine::{Payload, Sample, SampleSink, Simulation};
+use cloi_io::atomic::AtomicFile;
+use cloi_io::bag::BagWriter;
+use cloi_io::ros2::{
     Header, Image, Imu, LaserScan, Odometry, Pose, PoseWithCovariance, Quaternion, TfMessage, Time,
     Transform, TransformStamped, Twist, TwistWithCovariance, Vector3,
 };
@@ -414,7 +414,7 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::camera::CameraParams;
+    use crate::camera::CameraParams;
 
     #[test]
     fn camera_mount_quaternion_rotates_optical_axes_into_the_body() {

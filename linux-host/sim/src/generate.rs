@@ -20,9 +20,9 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use toml::Spanned;
 
-use super::builtin::{boxed, plain_wall, sp, wall_with_doors, waypoints};
-use super::path::route_points;
-use super::world::{
+use crate::builtin::{boxed, plain_wall, sp, wall_with_doors, waypoints};
+use crate::path::route_points;
+use crate::world::{
     point_seg, CeilingSpec, FaultKind, FaultSpec, Material, OdometrySpec, RegionKind, RegionSpec,
     RobotKind, RouteSpec, WallSpec, World, WorldFile, P2,
 };
