@@ -77,7 +77,7 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Prune(args) => crate::prune::run(&args, out),
         Command::Corrupt(args) => crate::corrupt::run(&args, out),
         Command::Convert(args) => crate::io::cli::run(&args, out),
-        Command::Eval(cmd) => crate::eval::cli::run(&cmd, out),
+        Command::Eval(cmd) => crate::eval::cli::run(&cmd, &crate::prune::batch_optimum, out),
         Command::Sim(args) => crate::sim::command::run(&args, out),
         Command::Map(args) => crate::map::command::run_command(&args, cli.quiet, out),
     }

@@ -5,12 +5,13 @@
 
 pub mod cli;
 pub mod corrupt;
-pub mod eval;
 pub mod map;
 pub mod optimize;
 pub mod prune;
 pub mod prune_online;
 
+/// The evaluation: the crate [`cloi_eval`].
+pub use cloi_eval as eval;
 /// The file formats: the crate [`cloi_io`].
 pub use cloi_io as io;
 pub use cloi_io::{dataset, graph_io};

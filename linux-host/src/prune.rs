@@ -12,6 +12,7 @@ use cloi_core::backend::prune::{self, PruneParams, PruneReport, PruneScratch, We
 use cloi_core::geom::Se2;
 use cloi_core::graph::{PoseEdge, PoseGraph, PoseNode};
 use cloi_core::solver::{Method, SolverOptions};
+use cloi_eval::arps::arps;
 use serde::Serialize;
 
 use crate::graph_io::{self, FileEdge, GraphFile, GraphFormat};
@@ -125,27 +126,6 @@ pub struct PruneJson {
     pub outliers_dropped: usize,
 }
 
-/// ARPS, the average relative pose shift: the mean over kept nodes of
-/// `|t_original - t_pruned| / |t_original| * 100`, where `t_original` is the node's position
-/// in the optimized full graph. A node whose original position is within 1 mm of the origin
-/// (in practice the gauge node, which never moves) has no meaningful relative shift and is left
-/// out; the count left out is returned with the value. `None` when no node counts.
-pub fn arps(original: &[Se2], pruned: &[Se2]) -> Option<(f64, usize)> {
-    let mut sum = 0.0;
-    let mut used = 0usize;
-    let mut at_origin = 0usize;
-    for (o, p) in original.iter().zip(pruned) {
-        let norm = o.x.hypot(o.y);
-        if norm < 1e-3 {
-            at_origin += 1;
-            continue;
-        }
-        sum += (o.x - p.x).hypot(o.y - p.y) / norm;
-        used += 1;
-    }
-    (used > 0).then(|| (100.0 * sum / used as f64, at_origin))
-}
-
 /// The batch optimum of a whole graph file from the initial guess `init`.
 ///
 /// # Errors
@@ -167,67 +147,6 @@ pub fn batch_optimum(file: &GraphFile, init: &[Se2]) -> Result<Vec<Se2>> {
     ws.solve(&mut g, &SolverOptions::default())
         .map_err(|f| anyhow::anyhow!("batch optimum: {f}"))?;
     Ok(g.nodes().iter().map(|p| p.pose).collect())
-}
-
-/// Result of [`eval_arps`].
-#[derive(Debug, Clone, Serialize)]
-pub struct ArpsJson {
-    /// ARPS, percent.
-    pub arps_percent: f64,
-    /// Vertices of the pruned graph matched by id in the original.
-    pub nodes_matched: usize,
-    /// Matched nodes left out because they sit within 1 mm of the origin in the original.
-    pub nodes_at_origin: usize,
-    /// Largest position shift of a matched node, metres.
-    pub max_shift_m: f64,
-    /// Whether the original graph was optimized first.
-    pub original_optimized: bool,
-}
-
-/// `cloi eval arps`: ARPS of a pruned graph against its original, matching vertices by id.
-/// The original is optimized first (the paper's reference is the optimized full graph) unless
-/// `as_is` is set.
-///
-/// # Errors
-/// A file cannot be read, a pruned vertex is missing from the original, or the solve fails.
-pub fn eval_arps(
-    original: &std::path::Path,
-    pruned: &std::path::Path,
-    as_is: bool,
-) -> Result<ArpsJson> {
-    let a = graph_io::read_graph(original, None)?;
-    let b = graph_io::read_graph(pruned, None)?;
-    let reference = if as_is {
-        a.poses.clone()
-    } else {
-        batch_optimum(&a, &a.poses)?
-    };
-    let index: std::collections::HashMap<i64, usize> =
-        a.ids.iter().enumerate().map(|(i, id)| (*id, i)).collect();
-    let mut orig = Vec::with_capacity(b.ids.len());
-    for id in &b.ids {
-        let Some(&i) = index.get(id) else {
-            bail!(
-                "{}: vertex {id} is not in {}",
-                pruned.display(),
-                original.display()
-            );
-        };
-        orig.push(reference[i]);
-    }
-    let (arps_percent, nodes_at_origin) = arps(&orig, &b.poses).unwrap_or((0.0, 0));
-    let max_shift_m = orig
-        .iter()
-        .zip(&b.poses)
-        .map(|(o, p)| (o.x - p.x).hypot(o.y - p.y))
-        .fold(0.0, f64::max);
-    Ok(ArpsJson {
-        arps_percent,
-        nodes_matched: b.ids.len(),
-        nodes_at_origin,
-        max_shift_m,
-        original_optimized: !as_is,
-    })
 }
 
 /// Median of a non-empty list of times.

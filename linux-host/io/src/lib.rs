@@ -32,6 +32,8 @@ pub mod tum;
 
 pub use bag::BagWriter;
 
+use cloi_core::Se2;
+
 /// Parses a decimal time in seconds (`976052890.244111`, `-1.5`, `12`) into nanoseconds
 /// exactly, without going through `f64`. Digits past the ninth decimal are truncated.
 ///
@@ -65,9 +67,25 @@ pub fn parse_stamp_ns(text: &str) -> Option<i64> {
     Some(if negative { -total } else { total })
 }
 
+/// Parses a pose given as `X,Y,THETA` (metres, metres, radians), as on the command line.
+///
+/// # Errors
+/// Not three finite numbers separated by commas.
+pub fn parse_pose(text: &str) -> Result<Se2, String> {
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|t| t.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|e| format!("{text:?}: {e}; expected X,Y,THETA"))?;
+    match v[..] {
+        [x, y, theta] if v.iter().all(|n| n.is_finite()) => Ok(Se2::new(x, y, theta)),
+        _ => Err(format!("{text:?}: expected three finite numbers X,Y,THETA")),
+    }
+}
+
 #[cfg(test)]
 mod tests {
-    use super::parse_stamp_ns;
+    use super::{parse_pose, parse_stamp_ns};
 
     #[test]
     fn stamps_parse_exactly() {
@@ -89,6 +107,15 @@ mod tests {
             "99999999999999999999",
         ] {
             assert_eq!(parse_stamp_ns(bad), None, "{bad}");
+        }
+    }
+
+    #[test]
+    fn poses_parse_as_three_finite_numbers() {
+        let p = parse_pose(" -0.04, 0 ,1.5").unwrap();
+        assert_eq!((p.x, p.y, p.theta), (-0.04, 0.0, 1.5));
+        for bad in ["", "1,2", "1,2,3,4", "1,nan,0", "1,inf,0", "a,b,c"] {
+            assert!(parse_pose(bad).is_err(), "{bad}");
         }
     }
 }

@@ -57,6 +57,7 @@ use cloi_core::Se2;
 use crate::io::bag_read::{BagReadOptions, BagReader, SensorMsg, TopicSelection};
 use crate::io::carmen::{CarmenLaser, CarmenReader, CarmenRecord, LaserSource};
 use crate::io::convert::DEFAULT_RANGE_MAX;
+pub use crate::io::parse_pose;
 use crate::io::ros2::{LaserScan, TfMessage};
 use crate::sim::engine::{Payload, Sample, SampleSink};
 use crate::sim::output::EPOCH_NS;
@@ -1171,22 +1172,6 @@ pub struct InputArgs {
     /// Without INPUT: the simulator's seed.
     #[arg(long, default_value_t = 0)]
     pub sim_seed: u64,
-}
-
-/// Parses `X,Y,THETA`.
-///
-/// # Errors
-/// Not three finite numbers separated by commas.
-pub fn parse_pose(text: &str) -> std::result::Result<Se2, String> {
-    let v: Vec<f64> = text
-        .split(',')
-        .map(|t| t.trim().parse::<f64>())
-        .collect::<std::result::Result<_, _>>()
-        .map_err(|e| format!("{text:?}: {e}; expected X,Y,THETA"))?;
-    match v[..] {
-        [x, y, theta] if v.iter().all(|n| n.is_finite()) => Ok(Se2::new(x, y, theta)),
-        _ => Err(format!("{text:?}: expected three finite numbers X,Y,THETA")),
-    }
 }
 
 impl InputArgs {

@@ -8,7 +8,7 @@
 use anyhow::{bail, Result};
 use serde::Serialize;
 
-use super::traj::{align, associate, Alignment, ErrorStats, Trajectory};
+use crate::traj::{align, associate, Alignment, ErrorStats, Trajectory};
 
 /// Unit of the RPE step.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -172,7 +172,7 @@ mod tests {
     use nalgebra::{UnitQuaternion, Vector3};
 
     use super::*;
-    use crate::eval::traj::Pose3;
+    use crate::traj::Pose3;
 
     fn circle(n: usize, noise: f64) -> Trajectory {
         Trajectory {

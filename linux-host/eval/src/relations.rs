@@ -17,7 +17,7 @@ use cloi_core::geom::wrap_angle;
 use cloi_core::Se2;
 use serde::Serialize;
 
-use crate::io::parse_stamp_ns;
+use cloi_io::parse_stamp_ns;
 
 /// One relation between two times.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -44,11 +44,11 @@ fn numbers<'a>(
 ) -> Result<Vec<f64>> {
     fields
         .map(|f| match f.parse::<f64>() {
-            Ok(v) if v.is_finite() && v.abs() <= crate::io::tum::MAX_COORDINATE => Ok(v),
+            Ok(v) if v.is_finite() && v.abs() <= cloi_io::tum::MAX_COORDINATE => Ok(v),
             Ok(v) => bail!(
                 "{}:{line_no}: {v} is not a usable number (finite, within +-{:e})",
                 path.display(),
-                crate::io::tum::MAX_COORDINATE
+                cloi_io::tum::MAX_COORDINATE
             ),
             Err(_) => bail!("{}:{line_no}: {f:?} is not a number", path.display()),
         })

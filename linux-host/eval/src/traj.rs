@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use nalgebra::{DMatrix, Matrix3, UnitQuaternion, Vector3};
 use serde::Serialize;
 
-use crate::io::tum::{read_kitti_rows, read_tum, StampedPose};
+use cloi_io::tum::{read_kitti_rows, read_tum, StampedPose};
 
 /// A 3D pose as a rotation matrix and a translation, kept exactly as read: KITTI files
 /// store rotations with 9 digits, which are not quite orthonormal, and `evo` uses them as
@@ -65,7 +65,7 @@ impl Pose3 {
 
     /// Rotation angle (rad) of the (re-orthonormalized) rotation.
     pub fn rotation_angle(&self) -> f64 {
-        crate::io::tum::rotation_from_matrix(&self.r).angle()
+        cloi_io::tum::rotation_from_matrix(&self.r).angle()
     }
 }
 

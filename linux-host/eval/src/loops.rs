@@ -23,10 +23,10 @@ use cloi_core::geom::wrap_angle;
 use cloi_core::Se2;
 use serde::Serialize;
 
-use super::relations::PlanarTrajectory;
+use crate::relations::PlanarTrajectory;
 use cloi_core::graph::EdgeKind;
 
-use crate::graph_io::GraphFile;
+use cloi_io::graph_io::GraphFile;
 
 /// How far (m, rad) a vertex may lie from a trajectory pose and still be that scan: a few
 /// printing ulps, far below any motion between scans.
@@ -274,7 +274,7 @@ mod tests {
         let dir = tempfile::tempdir().expect("tempdir");
         let path = dir.path().join("test.g2o");
         std::fs::write(&path, text).expect("write");
-        let graph = crate::graph_io::read_graph(&path, None).expect("graph");
+        let graph = cloi_io::graph_io::read_graph(&path, None).expect("graph");
         let c = check_loops(
             &graph,
             &HashSet::new(),

@@ -6,13 +6,14 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 use cloi_core::Se2;
+use cloi_io::parse_pose;
 use serde_json::json;
 
-use super::loops::{check_loops, switched_off_edges};
-use super::metrics::{ate, rpe, DeltaUnit};
-use super::relations::{load_relations, relations_from_reference, score, PlanarTrajectory};
-use super::traj::{Alignment, Trajectory};
-use crate::map::input::parse_pose;
+use crate::arps::{eval_arps, BatchOptimum};
+use crate::loops::{check_loops, switched_off_edges};
+use crate::metrics::{ate, rpe, DeltaUnit};
+use crate::relations::{load_relations, relations_from_reference, score, PlanarTrajectory};
+use crate::traj::{Alignment, Trajectory};
 
 /// The `cloi eval` subcommands.
 #[derive(Debug, Subcommand)]
@@ -173,14 +174,15 @@ fn in_frame(traj: PlanarTrajectory, offset: Option<Se2>) -> PlanarTrajectory {
     }
 }
 
-/// Runs an eval subcommand, printing JSON to `out`.
+/// Runs an eval subcommand, printing JSON to `out`. `batch_optimum` optimizes the original
+/// graph of `cloi eval arps` (see [`eval_arps`]).
 ///
 /// # Errors
 /// Unreadable inputs or nothing to compare.
-pub fn run(cmd: &EvalCommand, out: &mut dyn Write) -> Result<()> {
+pub fn run(cmd: &EvalCommand, batch_optimum: &BatchOptimum, out: &mut dyn Write) -> Result<()> {
     let value = match cmd {
         EvalCommand::Arps(a) => {
-            serde_json::to_value(crate::prune::eval_arps(&a.original, &a.pruned, a.as_is)?)?
+            serde_json::to_value(eval_arps(&a.original, &a.pruned, a.as_is, batch_optimum)?)?
         }
         EvalCommand::Loops(a) => {
             if !(a.max_time_diff >= 0.0 && a.max_time_diff < 10.0) {
@@ -189,7 +191,7 @@ pub fn run(cmd: &EvalCommand, out: &mut dyn Write) -> Result<()> {
             if !(a.max_gap >= 0.0 && a.max_gap < 600.0) {
                 anyhow::bail!("--max-gap must be in [0, 600) seconds");
             }
-            let graph = crate::graph_io::read_graph(&a.graph, None)?;
+            let graph = cloi_io::graph_io::read_graph(&a.graph, None)?;
             let estimate = PlanarTrajectory::load_tum(&a.trajectory)?;
             let is_gfs = a
                 .reference
