@@ -1,8 +1,8 @@
 //! Writing ROS 2 bags as MCAP files (CDR messages, `ros2msg` schemas, zstd chunks).
 //!
 //! ```no_run
-//! use cloi_host::io::bag::BagWriter;
-//! use cloi_host::io::ros2::{Header, LaserScan, Time};
+//! use cloi_io::bag::BagWriter;
+//! use cloi_io::ros2::{Header, LaserScan, Time};
 //! # fn main() -> anyhow::Result<()> {
 //! let mut bag = BagWriter::create("out.mcap".as_ref())?;
 //! let t = 1_700_000_000_000_000_000; // nanoseconds
