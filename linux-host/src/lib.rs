@@ -1,7 +1,14 @@
 //! # cloi-host
 //!
-//! Everything of CLOi-Mapper that needs an operating system: the `cloi` command line, file
-//! formats, the simulator and evaluation. The algorithms live in [`cloi_core`].
+//! The `cloi` command of CLOi-Mapper on Linux: it wires the crates that do the work and
+//! drives the mapper. The algorithms live in [`cloi_core`], the file formats in [`cloi_io`],
+//! the simulator in [`cloi_sim`] and the evaluation in [`cloi_eval`]. Those three are
+//! re-exported here (`cloi_host::io`, `graph_io`, `dataset`, `sim`, `eval`), so tests, examples
+//! and outside tools reach the whole host through one crate.
+//!
+//! * [`cli`]: the subcommands and their dispatch;
+//! * [`map`]: `cloi map`, the mapping driver (inputs, configuration, threads, outputs);
+//! * [`optimize`], [`prune`], [`prune_online`], [`corrupt`]: pose-graph files.
 
 pub mod cli;
 pub mod corrupt;
