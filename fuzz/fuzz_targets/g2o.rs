@@ -5,6 +5,6 @@ use std::path::Path;
 
 fuzz_target!(|data: &[u8]| {
     if let Ok(text) = std::str::from_utf8(data) {
-        let _ = cloi_host::graph_io::g2o::read_g2o(text, Path::new("fuzz.g2o"));
+        let _ = cloi_host::graph_io::read_g2o(text, Path::new("fuzz.g2o"));
     }
 });

@@ -5,6 +5,6 @@ use std::path::Path;
 
 fuzz_target!(|data: &[u8]| {
     if let Ok(text) = std::str::from_utf8(data) {
-        let _ = cloi_host::graph_io::toro::read_toro(text, Path::new("fuzz.toro"));
+        let _ = cloi_host::graph_io::read_toro(text, Path::new("fuzz.toro"));
     }
 });
