@@ -536,6 +536,16 @@ impl BagReader {
                 }
                 LinearReadEvent::Record { opcode, data } => (opcode, data),
             };
+            // Only the records used below are parsed. The others (header, attachments,
+            // metadata, indexes) carry nothing the mapper reads, and the `mcap` crate's
+            // attachment parser panics on a record too short for its fixed fields.
+            use mcap::records::op;
+            if !matches!(
+                opcode,
+                op::SCHEMA | op::CHANNEL | op::MESSAGE | op::CHUNK | op::DATA_END
+            ) {
+                continue;
+            }
             let record = match mcap::parse_record(opcode, data) {
                 Ok(r) => r,
                 Err(err) => {
@@ -864,6 +874,20 @@ mod tests {
             "{:?}",
             stats.warnings
         );
+    }
+
+    #[test]
+    fn a_short_attachment_record_is_skipped() {
+        let good = bag_bytes(&[1, 2], BagCompression::Zstd);
+        // After the magic, an attachment (opcode 0x09) of 32 zero bytes: two times, two
+        // empty strings and a data length, but no room for the CRC that ends the record.
+        let mut bytes = good[..8].to_vec();
+        bytes.push(mcap::records::op::ATTACHMENT);
+        bytes.extend_from_slice(&32u64.to_le_bytes());
+        bytes.extend_from_slice(&[0; 32]);
+        bytes.extend_from_slice(&good[8..]);
+        let (msgs, _) = read(bytes, BagReadOptions::default());
+        assert_eq!(msgs.iter().filter(|m| m.is_ok()).count(), 4);
     }
 
     #[test]
