@@ -341,6 +341,8 @@ impl Decoder {
 /// Streams the sensor messages of a ROS 2 bag in log-time order.
 pub struct BagReader {
     linear: mcap::sans_io::LinearReader,
+    /// The chunk whose records are being read, once `linear` has handed it over whole.
+    chunk: Option<OpenChunk>,
     source: Box<dyn Read>,
     bytes: u64,
     decoder: Decoder,
@@ -350,6 +352,68 @@ pub struct BagReader {
     order: u64,
     source_done: bool,
     failed: bool,
+}
+
+/// One chunk record of the file, read by a linear reader of its own.
+///
+/// The file's reader emits chunks whole and this one unpacks them, so that the chunk's records
+/// can be checked first: the `mcap` crate trusts the lengths of the records of an uncompressed
+/// chunk and counts down the chunk's remaining bytes with them.
+struct OpenChunk {
+    linear: mcap::sans_io::LinearReader,
+    /// The chunk record (opcode, length, body), read once.
+    bytes: std::io::Cursor<Vec<u8>>,
+}
+
+impl OpenChunk {
+    /// Opens the chunk record `body` (with the header `header`).
+    ///
+    /// # Errors
+    /// A record of an uncompressed chunk runs past the end of the chunk.
+    fn new(header: &mcap::records::ChunkHeader, records: &[u8], body: &[u8]) -> Result<Self> {
+        if header.compression.is_empty() {
+            check_records_fit(records)?;
+        }
+        let mut bytes = Vec::with_capacity(9 + body.len());
+        bytes.push(mcap::records::op::CHUNK);
+        bytes.extend_from_slice(&(body.len() as u64).to_le_bytes());
+        bytes.extend_from_slice(body);
+        Ok(Self {
+            linear: mcap::sans_io::LinearReader::new_with_options(reader_options(true)),
+            bytes: std::io::Cursor::new(bytes),
+        })
+    }
+}
+
+/// Options of the linear readers: the file's (which emits chunks whole) and a chunk's.
+fn reader_options(chunk: bool) -> mcap::sans_io::LinearReaderOptions {
+    mcap::sans_io::LinearReaderOptions::default()
+        .with_skip_start_magic(chunk)
+        .with_skip_end_magic(chunk)
+        .with_emit_chunks(!chunk)
+        .with_prevalidate_chunk_crcs(true)
+        .with_validate_data_section_crc(!chunk)
+        .with_record_length_limit(MAX_RECORD_BYTES)
+}
+
+/// Checks that the records of an uncompressed chunk (opcode, `u64` length, body) tile it.
+fn check_records_fit(mut records: &[u8]) -> Result<()> {
+    let chunk_len = records.len();
+    while let Some((opcode, rest)) = records.split_first() {
+        let at = chunk_len - records.len();
+        let Some((len, rest)) = rest.split_first_chunk::<8>() else {
+            bail!("record (opcode {opcode:#x}) at byte {at} of a chunk: its length is cut");
+        };
+        let len = u64::from_le_bytes(*len);
+        let Some(rest) = usize::try_from(len).ok().and_then(|len| rest.get(len..)) else {
+            bail!(
+                "record (opcode {opcode:#x}) at byte {at} of a chunk: {len} bytes long, \
+                 past the chunk's end ({chunk_len} bytes)"
+            );
+        };
+        records = rest;
+    }
+    Ok(())
 }
 
 impl std::fmt::Debug for BagReader {
@@ -375,12 +439,8 @@ impl BagReader {
     /// Reads a bag from any reader; `path` names it in messages.
     pub fn from_reader(input: Box<dyn Read>, path: &Path, options: BagReadOptions) -> Self {
         Self {
-            linear: mcap::sans_io::LinearReader::new_with_options(
-                mcap::sans_io::LinearReaderOptions::default()
-                    .with_prevalidate_chunk_crcs(true)
-                    .with_validate_data_section_crc(true)
-                    .with_record_length_limit(MAX_RECORD_BYTES),
-            ),
+            linear: mcap::sans_io::LinearReader::new_with_options(reader_options(false)),
+            chunk: None,
             source: input,
             bytes: 0,
             decoder: Decoder {
@@ -432,12 +492,32 @@ impl BagReader {
         use mcap::records::Record;
         use mcap::sans_io::LinearReadEvent;
         loop {
-            let event = match self.linear.next_event() {
+            let in_chunk = self.chunk.is_some();
+            let event = match self.chunk.as_mut() {
+                Some(chunk) => chunk.linear.next_event(),
+                None => self.linear.next_event(),
+            };
+            let event = match event {
+                None if in_chunk => {
+                    self.chunk = None;
+                    continue;
+                }
                 None => return Ok(false),
                 Some(Ok(event)) => event,
-                Some(Err(err)) => return self.damage(&err),
+                Some(Err(err)) => {
+                    self.chunk = None;
+                    return self.damage(&err);
+                }
             };
             let (opcode, data) = match event {
+                LinearReadEvent::ReadRequest(need) if in_chunk => {
+                    if let Some(chunk) = self.chunk.as_mut() {
+                        // A read from memory cannot fail; a short one is a cut chunk.
+                        let read = chunk.bytes.read(chunk.linear.insert(need)).unwrap_or(0);
+                        chunk.linear.notify_read(read);
+                    }
+                    continue;
+                }
                 LinearReadEvent::ReadRequest(need) => {
                     let read = loop {
                         match self.source.read(self.linear.insert(need)) {
@@ -456,6 +536,16 @@ impl BagReader {
                 }
                 LinearReadEvent::Record { opcode, data } => (opcode, data),
             };
+            // Only the records used below are parsed. The others (header, attachments,
+            // metadata, indexes) carry nothing the mapper reads, and the `mcap` crate's
+            // attachment parser panics on a record too short for its fixed fields.
+            use mcap::records::op;
+            if !matches!(
+                opcode,
+                op::SCHEMA | op::CHANNEL | op::MESSAGE | op::CHUNK | op::DATA_END
+            ) {
+                continue;
+            }
             let record = match mcap::parse_record(opcode, data) {
                 Ok(r) => r,
                 Err(err) => {
@@ -464,6 +554,16 @@ impl BagReader {
                 }
             };
             let msg = match record {
+                Record::Chunk {
+                    header,
+                    data: records,
+                } if !in_chunk => {
+                    match OpenChunk::new(&header, &records, data) {
+                        Ok(chunk) => self.chunk = Some(chunk),
+                        Err(e) => return self.damage(&e),
+                    }
+                    continue;
+                }
                 Record::Schema { header, .. } => {
                     self.decoder.schemas.insert(header.id, header.name);
                     continue;
@@ -743,6 +843,51 @@ mod tests {
             let (msgs, _) = read(bytes, strict);
             assert!(msgs.last().is_some_and(|m| m.is_err()), "{compression:?}");
         }
+    }
+
+    #[test]
+    fn a_record_longer_than_its_uncompressed_chunk_is_damage() {
+        let times: Vec<i64> = (0..5).map(|i| i * 10_000_000).collect();
+        let mut bytes = bag_bytes(&times, BagCompression::None);
+        // Walk the file's records (opcode, u64 length) from the magic to the first chunk.
+        let mut at = 8;
+        while bytes[at] != mcap::records::op::CHUNK {
+            at += 9 + u64::from_le_bytes(bytes[at + 1..at + 9].try_into().unwrap()) as usize;
+        }
+        // Chunk body: start and end times, uncompressed size, CRC, compression "" (a u32
+        // length), compressed size, then the records. Drop the CRC so the length is what
+        // is checked, and make the first record claim as many bytes as the chunk's records,
+        // which with its own 9 is more than the chunk holds (and less than a record may be).
+        let body = at + 9;
+        bytes[body + 24..body + 28].fill(0);
+        let records_len = bytes[body + 32..body + 40].to_vec();
+        let first = body + 40;
+        bytes[first + 1..first + 9].copy_from_slice(&records_len);
+        let (msgs, stats) = read(bytes, BagReadOptions::default());
+        assert!(stats.truncated);
+        assert!(msgs.iter().all(|m| m.is_ok()));
+        assert!(
+            stats
+                .warnings
+                .iter()
+                .any(|w| w.contains("past the chunk's end")),
+            "{:?}",
+            stats.warnings
+        );
+    }
+
+    #[test]
+    fn a_short_attachment_record_is_skipped() {
+        let good = bag_bytes(&[1, 2], BagCompression::Zstd);
+        // After the magic, an attachment (opcode 0x09) of 32 zero bytes: two times, two
+        // empty strings and a data length, but no room for the CRC that ends the record.
+        let mut bytes = good[..8].to_vec();
+        bytes.push(mcap::records::op::ATTACHMENT);
+        bytes.extend_from_slice(&32u64.to_le_bytes());
+        bytes.extend_from_slice(&[0; 32]);
+        bytes.extend_from_slice(&good[8..]);
+        let (msgs, _) = read(bytes, BagReadOptions::default());
+        assert_eq!(msgs.iter().filter(|m| m.is_ok()).count(), 4);
     }
 
     #[test]
