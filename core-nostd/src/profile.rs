@@ -168,33 +168,22 @@ impl<
                 "submap grid size differs from the profile's",
             ));
         }
-        let mut graph = PoseGraph::new(&mut self.pose_graph.nodes, &mut self.pose_graph.edges);
-        graph.clear();
-        self.submap_meta.fill(SubmapMeta::EMPTY);
-        self.local_map = PointMap::new(config.local_voxel);
-        self.scan.clear();
-        self.odometry = OdometryFusion::new(config.odometry);
-        self.state = MapperState::new(config.keyframe);
-        let mut solver = self.solver.buffers();
-        solver.invalidate();
-        Mapper::new(
-            config,
-            MapperParts {
-                graph,
-                solver,
-                meta: &mut self.node_meta,
-                submaps: &mut self.submap_meta,
-                cells: self.grid_cells.as_flattened_mut(),
-                pyramid: self.pyramid.as_flattened_mut(),
-                local: &mut self.local_map,
-                scan: &mut self.scan,
-                reference: &mut self.loop_reference,
-                loop_scan: &mut self.loop_scan,
-                odometry: &mut self.odometry,
-                prune: self.prune.scratch(),
-                state: &mut self.state,
-            },
-        )
+        MapperParts {
+            graph: PoseGraph::new(&mut self.pose_graph.nodes, &mut self.pose_graph.edges),
+            solver: self.solver.buffers(),
+            meta: &mut self.node_meta,
+            submaps: &mut self.submap_meta,
+            cells: self.grid_cells.as_flattened_mut(),
+            pyramid: self.pyramid.as_flattened_mut(),
+            local: &mut self.local_map,
+            scan: &mut self.scan,
+            reference: &mut self.loop_reference,
+            loop_scan: &mut self.loop_scan,
+            odometry: &mut self.odometry,
+            prune: self.prune.scratch(),
+            state: &mut self.state,
+        }
+        .start(config)
     }
 }
 

@@ -198,6 +198,28 @@ impl HostWorkspace {
         self.adj_next.resize(2 * factor, 0);
     }
 
+    /// Bytes held by the workspace's vectors.
+    pub fn bytes(&self) -> usize {
+        use std::mem::size_of_val;
+        self.node_u32
+            .iter()
+            .map(|v| size_of_val(&v[..]))
+            .sum::<usize>()
+            + size_of_val(&self.key)
+            + size_of_val(&self.diag[..])
+            + size_of_val(&self.work[..])
+            + size_of_val(&self.rhs[..])
+            + size_of_val(&self.step[..])
+            + size_of_val(&self.saved[..])
+            + size_of_val(&self.edge_slot[..])
+            + size_of_val(&self.edge_trig[..])
+            + size_of_val(&self.edge_flags[..])
+            + size_of_val(&self.rows[..])
+            + size_of_val(&self.values[..])
+            + size_of_val(&self.adj_node[..])
+            + size_of_val(&self.adj_next[..])
+    }
+
     /// The workspace as the core's slices.
     pub fn buffers(&mut self) -> SolverBuffers<'_> {
         let [a, b, c, d, e, f, g, h, i] = &mut self.node_u32;

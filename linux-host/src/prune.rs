@@ -234,24 +234,7 @@ pub fn prune_file(args: &PruneArgs) -> Result<Pruned> {
         max_eliminations: args.max_eliminations.unwrap_or(usize::MAX),
         ..PruneParams::default()
     };
-    let mut node_information = vec![0.0; n];
-    let mut candidates = vec![
-        CellCandidate {
-            x: 0.0,
-            y: 0.0,
-            information: 0.0,
-            protected: false
-        };
-        n
-    ];
-    let mut order = vec![0u32; n];
-    let mut keep = vec![false; n];
-    let mut keys = vec![CellKey::default(); n];
-    let mut geometric = vec![0.0; n];
-    let mut cells = vec![CellMoments::EMPTY; n];
-    let mut head = vec![0u32; n];
-    let mut edge_alive = vec![false; edge_capacity];
-    let mut next = vec![0u32; 2 * edge_capacity];
+    let mut scratch = OwnedPruneScratch::new(n, edge_capacity);
     let full_nodes: Vec<PoseNode> = g.nodes().to_vec();
     let full_edges: Vec<PoseEdge> = g.edges().to_vec();
     let mut prune_times = Vec::new();
@@ -274,26 +257,11 @@ pub fn prune_file(args: &PruneArgs) -> Result<Pruned> {
             cloi_core::solver::marginal_information_traces(
                 &mut g,
                 &mut ws.buffers(),
-                &mut node_information,
+                &mut scratch.node_information,
             )
             .map_err(|e| anyhow::anyhow!("node marginals for eq. (3): {e}"))?;
         }
-        report = prune::prune(
-            &mut g,
-            &params,
-            &mut PruneScratch {
-                node_information: &mut node_information,
-                candidates: &mut candidates,
-                order: &mut order,
-                keys: &mut keys,
-                geometric: &mut geometric,
-                cells: &mut cells,
-                keep: &mut keep,
-                head: &mut head,
-                edge_alive: &mut edge_alive,
-                next: &mut next,
-            },
-        )?;
+        report = prune::prune(&mut g, &params, &mut scratch.scratch())?;
         prune_times.push(t1.elapsed().as_secs_f64() * 1e3);
 
         // 3. Optimize the pruned graph.
@@ -307,7 +275,7 @@ pub fn prune_file(args: &PruneArgs) -> Result<Pruned> {
     let optimize_ms = median(&mut optimize_times);
     // `order` now maps old node indices to new ones.
     let kept_original: Vec<Se2> = (0..n)
-        .filter(|&i| order[i] != u32::MAX)
+        .filter(|&i| scratch.order()[i] != u32::MAX)
         .map(|i| original[i])
         .collect();
     let pruned: Vec<Se2> = g.nodes().iter().map(|p| p.pose).collect();
@@ -358,7 +326,7 @@ pub fn prune_file(args: &PruneArgs) -> Result<Pruned> {
         outliers_dropped: report.outliers_dropped,
     };
     let ids = (0..n)
-        .filter(|&i| order[i] != u32::MAX)
+        .filter(|&i| scratch.order()[i] != u32::MAX)
         .map(|i| file.ids[i])
         .collect();
     Ok(Pruned {
@@ -434,4 +402,82 @@ pub fn run(args: &PruneArgs, out: &mut dyn Write) -> Result<()> {
     }
     writeln!(out, "{text}")?;
     Ok(())
+}
+
+/// Prune scratch on the heap for `nodes` nodes and `edges` edges, allocated once (as the
+/// pools are) and lent to the core as a [`PruneScratch`].
+#[derive(Debug)]
+pub struct OwnedPruneScratch {
+    node_information: Vec<f64>,
+    candidates: Vec<CellCandidate>,
+    order: Vec<u32>,
+    keys: Vec<CellKey>,
+    geometric: Vec<f64>,
+    cells: Vec<CellMoments>,
+    keep: Vec<bool>,
+    head: Vec<u32>,
+    edge_alive: Vec<bool>,
+    next: Vec<u32>,
+}
+
+impl OwnedPruneScratch {
+    /// Scratch for a pool of `nodes` nodes and `edges` edges.
+    pub fn new(nodes: usize, edges: usize) -> Self {
+        OwnedPruneScratch {
+            node_information: vec![0.0; nodes],
+            candidates: vec![
+                CellCandidate {
+                    x: 0.0,
+                    y: 0.0,
+                    information: 0.0,
+                    protected: false
+                };
+                nodes
+            ],
+            order: vec![0; nodes],
+            keys: vec![CellKey::default(); nodes],
+            geometric: vec![0.0; nodes],
+            cells: vec![CellMoments::EMPTY; nodes],
+            keep: vec![false; nodes],
+            head: vec![0; nodes],
+            edge_alive: vec![false; edges],
+            next: vec![0; 2 * edges],
+        }
+    }
+
+    /// The renumbering of the last pruning (old node index -> new, see [`PruneScratch`]).
+    pub fn order(&self) -> &[u32] {
+        &self.order
+    }
+
+    /// Bytes held by the scratch.
+    pub fn bytes(&self) -> usize {
+        use std::mem::size_of_val;
+        size_of_val(&self.node_information[..])
+            + size_of_val(&self.candidates[..])
+            + size_of_val(&self.order[..])
+            + size_of_val(&self.keys[..])
+            + size_of_val(&self.geometric[..])
+            + size_of_val(&self.cells[..])
+            + size_of_val(&self.keep[..])
+            + size_of_val(&self.head[..])
+            + size_of_val(&self.edge_alive[..])
+            + size_of_val(&self.next[..])
+    }
+
+    /// The scratch as the core's slices.
+    pub fn scratch(&mut self) -> PruneScratch<'_> {
+        PruneScratch {
+            node_information: &mut self.node_information,
+            candidates: &mut self.candidates,
+            order: &mut self.order,
+            keys: &mut self.keys,
+            geometric: &mut self.geometric,
+            cells: &mut self.cells,
+            keep: &mut self.keep,
+            head: &mut self.head,
+            edge_alive: &mut self.edge_alive,
+            next: &mut self.next,
+        }
+    }
 }

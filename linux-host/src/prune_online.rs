@@ -16,8 +16,8 @@ use std::collections::BTreeMap;
 use std::time::Instant;
 
 use anyhow::{bail, Result};
-use cloi_core::backend::cells::{CellCandidate, CellKey, CellMoments, CellParams};
-use cloi_core::backend::prune::{self, PruneParams, PruneScratch};
+use cloi_core::backend::cells::{CellKey, CellParams};
+use cloi_core::backend::prune::{self, PruneParams};
 use cloi_core::geom::Se2;
 use cloi_core::graph::{EdgeKind, PoseEdge, PoseGraph, PoseNode};
 use cloi_core::solver::{Method, SolveError, SolverOptions};
@@ -26,6 +26,7 @@ use serde::Serialize;
 
 use crate::graph_io::GraphFile;
 use crate::optimize::HostWorkspace;
+use crate::prune::OwnedPruneScratch;
 
 /// Settings of an online run.
 #[derive(Clone, Copy, Debug)]
@@ -131,7 +132,7 @@ pub fn run_online(file: &GraphFile, batch: &[Se2], cfg: &OnlineSettings) -> Resu
         max_shift_vs_batch_m: 0.0,
         total_ms: 0.0,
     };
-    let mut scratch = OwnedScratch::new(cfg.pool_nodes, cfg.pool_edges);
+    let mut scratch = OwnedPruneScratch::new(cfg.pool_nodes, cfg.pool_edges);
     let params = PruneParams {
         cells: CellParams {
             cell_size: cfg.cell,
@@ -260,51 +261,12 @@ fn initial_guess(
         .unwrap_or(file.poses[i])
 }
 
-/// Heap-backed prune scratch of fixed size (allocated once, like the pool).
-struct OwnedScratch {
-    node_information: Vec<f64>,
-    candidates: Vec<CellCandidate>,
-    order: Vec<u32>,
-    keys: Vec<CellKey>,
-    geometric: Vec<f64>,
-    cells: Vec<CellMoments>,
-    keep: Vec<bool>,
-    head: Vec<u32>,
-    edge_alive: Vec<bool>,
-    next: Vec<u32>,
-}
-
-impl OwnedScratch {
-    fn new(nodes: usize, edges: usize) -> Self {
-        OwnedScratch {
-            node_information: vec![0.0; nodes],
-            candidates: vec![
-                CellCandidate {
-                    x: 0.0,
-                    y: 0.0,
-                    information: 0.0,
-                    protected: false
-                };
-                nodes
-            ],
-            order: vec![0; nodes],
-            keys: vec![CellKey::default(); nodes],
-            geometric: vec![0.0; nodes],
-            cells: vec![CellMoments::EMPTY; nodes],
-            keep: vec![false; nodes],
-            head: vec![0; nodes],
-            edge_alive: vec![false; edges],
-            next: vec![0; 2 * edges],
-        }
-    }
-}
-
 /// Prunes the pool and re-anchors the streamed nodes of every eliminated graph node.
 fn prune_pool(
     g: &mut PoseGraph<'_>,
     params: &PruneParams,
     protect_from: usize,
-    s: &mut OwnedScratch,
+    s: &mut OwnedPruneScratch,
     anchors: &mut [Option<Anchor>],
     file_of: &mut Vec<usize>,
 ) -> Result<()> {
@@ -313,23 +275,8 @@ fn prune_pool(
         protect_from,
         ..*params
     };
-    prune::prune(
-        g,
-        &params,
-        &mut PruneScratch {
-            node_information: &mut s.node_information,
-            candidates: &mut s.candidates,
-            order: &mut s.order,
-            keys: &mut s.keys,
-            geometric: &mut s.geometric,
-            cells: &mut s.cells,
-            keep: &mut s.keep,
-            head: &mut s.head,
-            edge_alive: &mut s.edge_alive,
-            next: &mut s.next,
-        },
-    )?;
-    let remap = &s.order[..before.len()];
+    prune::prune(g, &params, &mut s.scratch())?;
+    let remap = &s.order()[..before.len()];
     // Kept nodes by cell, for re-anchoring.
     let mut by_cell: BTreeMap<CellKey, u32> = BTreeMap::new();
     for (old, &new) in remap.iter().enumerate() {

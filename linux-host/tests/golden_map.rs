@@ -10,6 +10,8 @@
 //!   candidates per keyframe (a perturbation that used to bend the map to 0.73 m): both stay
 //!   under the error intel had before the loop-search window was taken from the submap's
 //!   anchor (0.0515 m);
+//! * the whole process of `cloi map` on the whole `intel.clf` stays under each profile's
+//!   memory ceiling (its proven static footprint plus 24 MiB);
 //! * each of the three whole logs converted to a ROS 2 bag (`cloi convert`: messages in stamp
 //!   order, as a robot delivers them) maps within 10 % of the relation error of the same log
 //!   read from the `.clf`, without odometry gaps. The bag of intel differs from its `.clf` in
@@ -20,10 +22,12 @@
 //!
 //! Release mode: `cargo test --release -p cloi-host --features golden --test golden_map`.
 
+use std::mem::size_of;
 use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
+use cloi_core::profile::{AirportResources, HomeResources, OfficeResources, AIRPORT, HOME, OFFICE};
 use cloi_core::Se2;
 use cloi_host::eval::relations::{relations_from_reference, score, PlanarTrajectory};
 use cloi_host::io::convert::carmen_to_bag;
@@ -179,6 +183,49 @@ fn intel_stays_consistent_when_loop_search_changes() {
         // window change 0.0515 m and 0.73 m. The old preset figure is the bound.
         assert!(err < 0.0515, "{name}: relation error {err} m");
         assert!(r["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{r}");
+        if name == "preset" {
+            assert_within_memory_ceiling(&r, OFFICE.name, size_of::<OfficeResources>());
+        }
+    }
+}
+
+/// The whole process's peak resident memory (what `cloi map` reports, read after every
+/// output but the report was written) is at most the profile's proven static footprint plus
+/// 24 MiB for the host: input buffers, the map image and the output files.
+fn assert_within_memory_ceiling(report: &serde_json::Value, profile: &str, footprint: usize) {
+    let peak = report["peak_rss_bytes"]
+        .as_u64()
+        .expect("peak_rss_bytes on Linux");
+    let ceiling = footprint as u64 + (24 << 20);
+    println!(
+        "{profile}: peak RSS {:.1} MiB, ceiling {:.1} MiB (footprint {:.1} MiB)",
+        peak as f64 / 1048576.0,
+        ceiling as f64 / 1048576.0,
+        footprint as f64 / 1048576.0
+    );
+    assert!(
+        peak <= ceiling,
+        "{profile}: peak RSS {peak} B above {ceiling} B"
+    );
+}
+
+/// The largest shared log mapped in the two other profiles stays within their memory
+/// ceilings too (office: the intel test above). Measured 2026-12-03: home 27.3 MiB (ceiling
+/// 34.4), office 64.9 (68.6), airport 155.9 (182.0); before the pools
+/// were allocated on the heap element by element, 186, 220 and 333 MiB.
+#[test]
+fn intel_maps_within_each_profiles_memory_ceiling() {
+    let Some(log) = cloi_host::dataset::shared_file("carmen/intel.clf") else {
+        return;
+    };
+    let tmp = tempfile::tempdir().expect("tempdir");
+    for (spec, footprint) in [
+        (HOME, size_of::<HomeResources>()),
+        (AIRPORT, size_of::<AirportResources>()),
+    ] {
+        let dir = tmp.path().join(spec.name);
+        let r = map(&log, &dir, &["--profile", spec.name]);
+        assert_within_memory_ceiling(&r, spec.name, footprint);
     }
 }
 

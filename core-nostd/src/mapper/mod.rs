@@ -219,6 +219,27 @@ pub struct MapperParts<'r> {
     pub state: &'r mut MapperState,
 }
 
+impl<'r> MapperParts<'r> {
+    /// Starts a new, empty map over these parts: whatever they held is cleared (graph, submap
+    /// slots, local map, scan, odometry history, small state, the solver's cached analysis)
+    /// and the mapper is assembled with [`Mapper::new`]. The same path serves static resources
+    /// ([`MapperResources::mapper`](crate::profile::MapperResources::mapper)) and a host's
+    /// heap-allocated ones, so both start a map identically.
+    ///
+    /// # Errors
+    /// As [`Mapper::new`].
+    pub fn start(mut self, config: MapperConfig) -> Result<Mapper<'r>, MapperError> {
+        self.graph.clear();
+        self.submaps.fill(SubmapMeta::EMPTY);
+        *self.local = PointMap::new(config.local_voxel);
+        self.scan.clear();
+        *self.odometry = OdometryFusion::new(config.odometry);
+        *self.state = MapperState::new(config.keyframe);
+        self.solver.invalidate();
+        Mapper::new(config, self)
+    }
+}
+
 impl core::fmt::Debug for Mapper<'_> {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         f.debug_struct("Mapper")

@@ -69,6 +69,9 @@ fn write_options(compression: BagCompression) -> mcap::WriteOptions {
         .profile("ros2")
         .library(concat!("cloi-mapper/", env!("CARGO_PKG_VERSION")))
         .compression(compression)
+        // One compressor on the calling thread: zstd's worker threads each buffer whole jobs
+        // (42 MB for a map's result bag), more than the mapper's own pools on a small robot.
+        .compression_threads(0)
 }
 
 impl BagWriter<BufWriter<NamedTempFile>> {

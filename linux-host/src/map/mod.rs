@@ -11,6 +11,7 @@ pub mod command;
 pub mod config;
 pub mod input;
 pub mod output;
+pub mod resources;
 pub mod run;
 
 pub use config::{MapConfig, Profile};

@@ -85,6 +85,10 @@ pub struct MapReport {
     pub wall_seconds: f64,
     /// Largest heap in use during the run (bytes), when measured (the `cloi` binary).
     pub peak_heap_bytes: Option<u64>,
+    /// Largest resident memory of the whole process so far (bytes; Linux's `VmHWM`), read
+    /// after every output but this report was written.
+    #[serde(default)]
+    pub peak_rss_bytes: Option<u64>,
     /// Largest step between consecutive real-time poses minus the odometry step, metres.
     pub gpe_max_jump_m: f64,
     /// Real-time poses per wall-clock second.
@@ -372,6 +376,21 @@ pub fn peak_heap_bytes() -> Option<u64> {
         .then(|| HEAP_PEAK.load(Ordering::Relaxed))
 }
 
+/// The process's peak resident memory so far (`VmHWM` of `/proc/self/status`), bytes; `None`
+/// where the kernel does not tell.
+pub fn peak_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kb = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))?
+        .trim()
+        .strip_suffix("kB")?
+        .trim()
+        .parse::<u64>()
+        .ok()?;
+    Some(kb * 1024)
+}
+
 /// Restarts the high-water mark from the bytes in use now (to measure one phase).
 pub fn reset_peak_heap() {
     HEAP_PEAK.store(HEAP_CURRENT.load(Ordering::Relaxed), Ordering::Relaxed);
@@ -487,6 +506,7 @@ mod tests {
             data_seconds: 20.0,
             wall_seconds: 0.1,
             peak_heap_bytes: Some(1234),
+            peak_rss_bytes: Some(4321),
             ..MapReport::default()
         };
         r.extra.insert("note".into(), serde_json::json!("x"));
@@ -510,6 +530,7 @@ mod tests {
             "data_seconds",
             "wall_seconds",
             "peak_heap_bytes",
+            "peak_rss_bytes",
             "gpe_max_jump_m",
             "gpe_rate_hz",
         ] {

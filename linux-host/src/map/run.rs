@@ -23,18 +23,19 @@ use cloi_core::geom::Se2;
 use cloi_core::graph::EdgeKind;
 use cloi_core::mapper::sync::{SyncStats, SYNC_SLOTS, SYNC_WAIT_NS};
 use cloi_core::mapper::{
-    BackendStep, Feeder, FrameOutput, Mapper, MapperConfig, MapperError, MapperStats, ScanInput,
-    ScanSlots,
+    BackendStep, Feeder, FrameOutput, Mapper, MapperStats, ScanInput, ScanSlots,
 };
-use cloi_core::profile::{AirportResources, HomeResources, MapperResources, OfficeResources};
+use cloi_core::profile::{AIRPORT, HOME, OFFICE};
 use cloi_core::storage::NodeId;
 use serde_json::json;
 
 use super::config::{MapConfig, Profile};
 use super::input::{InputStats, InputStream, SensorEvent};
 use super::output::{
-    compose_global_grid, peak_heap_bytes, write_tum, MapProgress, MapReport, SubmapView,
+    compose_global_grid, peak_heap_bytes, peak_rss_bytes, write_tum, MapProgress, MapReport,
+    SubmapView,
 };
+use super::resources::HeapResources;
 use crate::graph_io::{write_g2o, FileEdge, GraphFile};
 use crate::io::map_out::{write_map_png, write_map_server, write_result_mcap, TimedPose2};
 
@@ -85,42 +86,6 @@ pub struct MapRun {
     pub stats: MapperStats,
     /// What the user should know about the run (scans mapped without odometry cover).
     pub warnings: Vec<String>,
-}
-
-/// Boxed, empty resources of `profile`. They are built on a thread with a stack large enough
-/// to hold them by value (debug builds construct them on the stack before moving them).
-fn resources(profile: Profile) -> Result<Box<dyn ResourcesDyn + Send>> {
-    let size = match profile {
-        Profile::Home => size_of::<HomeResources>(),
-        Profile::Office => size_of::<OfficeResources>(),
-        Profile::Airport => size_of::<AirportResources>(),
-    };
-    std::thread::Builder::new()
-        .name("cloi-alloc".into())
-        .stack_size(4 * size + (256 << 20))
-        .spawn(move || -> Box<dyn ResourcesDyn + Send> {
-            match profile {
-                Profile::Home => Box::<HomeResources>::default(),
-                Profile::Office => Box::<OfficeResources>::default(),
-                Profile::Airport => Box::<AirportResources>::default(),
-            }
-        })
-        .context("starting the allocation thread")?
-        .join()
-        .map_err(|_| anyhow!("allocating the resources failed"))
-}
-
-/// Object-safe access to resources of any profile.
-trait ResourcesDyn {
-    fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError>;
-}
-
-impl<const N: usize, const E: usize, const S: usize, const C: usize, const F: usize> ResourcesDyn
-    for MapperResources<N, E, S, C, F>
-{
-    fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError> {
-        MapperResources::mapper(self, config)
-    }
 }
 
 /// One accepted scan: its time, reference keyframe, front-end motion since it, and outputs.
@@ -257,7 +222,11 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
     let progress = MapProgress::with_visibility(input.size(), settings.progress);
     let stats_handle = input.stats_handle();
     let wall = Instant::now();
-    let mut res = resources(settings.profile)?;
+    let mut res = HeapResources::new(match settings.profile {
+        Profile::Home => HOME,
+        Profile::Office => OFFICE,
+        Profile::Airport => AIRPORT,
+    });
     let mapper = res
         .mapper(cfg)
         .map_err(|e| anyhow!("profile {:?}: {e}", settings.profile))?;
@@ -607,6 +576,7 @@ fn finish(
         data_seconds,
         wall_seconds,
         peak_heap_bytes: peak_heap_bytes(),
+        peak_rss_bytes: peak_rss_bytes(),
         gpe_max_jump_m: jump,
         gpe_rate_hz: gpe.len() as f64 / wall_seconds.max(1e-9),
         extra: Default::default(),

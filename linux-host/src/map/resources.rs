@@ -1,0 +1,169 @@
+//! The mapper's pools on the host's heap, each allocated once at the profile's proven size.
+//!
+//! The firmware keeps a [`MapperResources`](cloi_core::profile::MapperResources) in a static;
+//! the host needs one per run. Building that value and boxing it passes it through the stack
+//! (there is no placement construction in safe Rust): on x86-64 the temporaries of the home
+//! profile touched 190 MB of stack for its 10 MB of pools, the airport profile's 340 MB, which
+//! is the whole process's peak memory. Here every pool is a vector filled element by element,
+//! so nothing large ever sits on the stack, and the zero-filled pools the map has not reached
+//! yet take no physical memory. The capacities are those of the profile's [`ProfileSpec`], the
+//! ones `cloi-budget` proves; a test checks that the bytes allocated match the static
+//! resources' size.
+
+use cloi_core::frontend::odometry::{OdometryConfig, OdometryFusion};
+use cloi_core::frontend::scan::{ScanPoint, ScanPoints};
+use cloi_core::frontend::{KeyframeConfig, PointMap};
+use cloi_core::graph::{PoseEdge, PoseGraph, PoseNode};
+use cloi_core::mapper::{
+    Mapper, MapperConfig, MapperError, MapperParts, MapperState, NodeMeta, SubmapMeta,
+    LOCAL_MAP_POINTS, LOOP_REFERENCE_POINTS, ODOMETRY_HISTORY, PYRAMID_LEVELS,
+};
+use cloi_core::profile::ProfileSpec;
+
+use crate::optimize::HostWorkspace;
+use crate::prune::OwnedPruneScratch;
+
+/// All of a mapper's storage for one profile, on the heap.
+#[derive(Debug)]
+pub struct HeapResources {
+    spec: ProfileSpec,
+    grid_cells: Vec<i8>,
+    nodes: Vec<PoseNode>,
+    edges: Vec<PoseEdge>,
+    solver: HostWorkspace,
+    node_meta: Vec<NodeMeta>,
+    submap_meta: Vec<SubmapMeta>,
+    pyramid: Vec<u8>,
+    loop_reference: Vec<ScanPoint>,
+    local_map: Box<PointMap<LOCAL_MAP_POINTS>>,
+    scan: Box<ScanPoints>,
+    loop_scan: Box<ScanPoints>,
+    odometry: Box<OdometryFusion<ODOMETRY_HISTORY>>,
+    prune: OwnedPruneScratch,
+    state: Box<MapperState>,
+}
+
+impl HeapResources {
+    /// Empty pools of the capacities of `spec`.
+    pub fn new(spec: ProfileSpec) -> Self {
+        HeapResources {
+            spec,
+            grid_cells: vec![0; spec.max_submaps * spec.submap_cells],
+            nodes: vec![PoseNode::EMPTY; spec.max_nodes],
+            edges: vec![PoseEdge::EMPTY; spec.max_edges],
+            solver: HostWorkspace::new(spec.max_nodes, spec.max_edges, spec.max_factor_blocks),
+            node_meta: vec![NodeMeta::EMPTY; spec.max_nodes],
+            submap_meta: vec![SubmapMeta::EMPTY; spec.max_submaps],
+            pyramid: vec![0; PYRAMID_LEVELS * spec.submap_cells],
+            loop_reference: vec![
+                ScanPoint {
+                    p: [0.0, 0.0],
+                    n: [0.0, 0.0],
+                };
+                LOOP_REFERENCE_POINTS
+            ],
+            local_map: Box::new(PointMap::new(0.05)),
+            scan: Box::new(ScanPoints::new()),
+            loop_scan: Box::new(ScanPoints::new()),
+            odometry: Box::new(OdometryFusion::new(OdometryConfig::DEFAULT)),
+            prune: OwnedPruneScratch::new(spec.max_nodes, spec.max_edges),
+            state: Box::new(MapperState::new(KeyframeConfig {
+                distance: 0.2,
+                angle: 0.35,
+            })),
+        }
+    }
+
+    /// The capacities these pools were made for.
+    pub fn spec(&self) -> &ProfileSpec {
+        &self.spec
+    }
+
+    /// Bytes held by the pools (what the static resources of the profile occupy, up to the
+    /// padding between fields).
+    pub fn bytes(&self) -> usize {
+        use std::mem::{size_of, size_of_val as vec_bytes};
+        vec_bytes(&self.grid_cells[..])
+            + vec_bytes(&self.nodes[..])
+            + vec_bytes(&self.edges[..])
+            + self.solver.bytes()
+            + vec_bytes(&self.node_meta[..])
+            + vec_bytes(&self.submap_meta[..])
+            + vec_bytes(&self.pyramid[..])
+            + vec_bytes(&self.loop_reference[..])
+            + size_of::<PointMap<LOCAL_MAP_POINTS>>()
+            + 2 * size_of::<ScanPoints>()
+            + size_of::<OdometryFusion<ODOMETRY_HISTORY>>()
+            + self.prune.bytes()
+            + size_of::<MapperState>()
+    }
+
+    /// Starts a new, empty map over these pools with `config` (see [`MapperParts::start`]).
+    ///
+    /// # Errors
+    /// [`MapperError`] when the configuration does not fit the pools (e.g. a submap grid of
+    /// another size than the profile's).
+    pub fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError> {
+        if config.grid.cells() != self.spec.submap_cells {
+            return Err(MapperError::Storage(
+                "submap grid size differs from the profile's",
+            ));
+        }
+        MapperParts {
+            graph: PoseGraph::new(&mut self.nodes, &mut self.edges),
+            solver: self.solver.buffers(),
+            meta: &mut self.node_meta,
+            submaps: &mut self.submap_meta,
+            cells: &mut self.grid_cells,
+            pyramid: &mut self.pyramid,
+            local: &mut self.local_map,
+            scan: &mut self.scan,
+            reference: &mut self.loop_reference,
+            loop_scan: &mut self.loop_scan,
+            odometry: &mut self.odometry,
+            prune: self.prune.scratch(),
+            state: &mut self.state,
+        }
+        .start(config)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cloi_core::profile::{
+        AirportResources, HomeResources, OfficeResources, AIRPORT, HOME, OFFICE,
+    };
+
+    #[test]
+    fn heap_pools_have_the_proven_sizes() {
+        for (spec, proven) in [
+            (HOME, size_of::<HomeResources>()),
+            (OFFICE, size_of::<OfficeResources>()),
+            (AIRPORT, size_of::<AirportResources>()),
+        ] {
+            let r = HeapResources::new(spec);
+            let bytes = r.bytes();
+            // The same elements; the two differ only in the padding between fields.
+            assert!(
+                bytes.abs_diff(proven) < 4096,
+                "{}: heap {bytes} B, static {proven} B",
+                spec.name
+            );
+        }
+    }
+
+    #[test]
+    fn a_heap_mapper_starts_like_a_static_one() {
+        let mut r = HeapResources::new(HOME);
+        let config = MapperConfig::home();
+        {
+            let m = r.mapper(config).expect("home config fits home pools");
+            assert_eq!(m.graph().node_capacity(), HOME.max_nodes);
+            assert_eq!(m.stats().scans, 0);
+        }
+        let mut other = config;
+        other.grid.side += 2;
+        assert!(matches!(r.mapper(other), Err(MapperError::Storage(_))));
+    }
+}
