@@ -393,3 +393,117 @@ fn report_says_whether_the_run_is_bit_reproducible() {
         assert_eq!(report(&dir)["reproducibility"], expected);
     }
 }
+
+/// The visible files of an output folder with their contents (report.json as its scan count:
+/// its wall time and memory differ between runs).
+fn output_set(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let mut set = std::collections::BTreeMap::new();
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return set;
+    };
+    for e in entries {
+        let e = e.expect("entry");
+        let name = e.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') {
+            continue;
+        }
+        let bytes = std::fs::read(e.path()).expect("readable output");
+        let bytes = if name == "report.json" {
+            let v: serde_json::Value = serde_json::from_slice(&bytes).expect("complete report");
+            v["scans"].to_string().into_bytes()
+        } else {
+            bytes
+        };
+        set.insert(name, bytes);
+    }
+    set
+}
+
+/// A deterministic map of `seconds` of the simulated home into `dir`.
+fn map_home(seconds: &str, dir: &Path) -> Command {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_cloi"));
+    c.args([
+        "map",
+        "--deterministic",
+        "--quiet",
+        "--sim-duration",
+        seconds,
+        "--out",
+    ])
+    .arg(dir)
+    .stdout(std::process::Stdio::null())
+    .stderr(std::process::Stdio::piped());
+    c
+}
+
+#[test]
+fn a_killed_rerun_leaves_the_old_outputs_or_the_new_ones_never_a_mix() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    // The two complete sets, for reference.
+    let (ref_a, ref_b) = (tmp.path().join("a"), tmp.path().join("b"));
+    assert!(map_home("10", &ref_a).status().expect("runs").success());
+    let started = std::time::Instant::now();
+    assert!(map_home("12", &ref_b).status().expect("runs").success());
+    let whole = started.elapsed();
+    let (a, b) = (output_set(&ref_a), output_set(&ref_b));
+    assert_ne!(a, b);
+    assert!(
+        a.contains_key("report.json") && a.len() >= 8,
+        "{:?}",
+        a.keys()
+    );
+
+    let out = tmp.path().join("out");
+    assert!(map_home("10", &out).status().expect("runs").success());
+    // SIGKILL at moments spread over the run, more of them near its end, where the outputs
+    // are written.
+    let mut seen_new = false;
+    for i in 0..12u32 {
+        let frac = if i < 4 {
+            f64::from(i) / 4.0
+        } else {
+            0.75 + f64::from(i - 4) * 0.04
+        };
+        let mut child = map_home("12", &out).spawn().expect("starts");
+        std::thread::sleep(whole.mul_f64(frac));
+        let _ = child.kill();
+        let _ = child.wait();
+        let now = output_set(&out);
+        if now == b {
+            seen_new = true;
+        } else {
+            assert_eq!(
+                now, a,
+                "killed at {frac:.2} of the run: a mixed or partial set"
+            );
+        }
+    }
+    // Finally let it finish: the new set replaces the old one.
+    assert!(map_home("12", &out).status().expect("runs").success());
+    assert_eq!(output_set(&out), b);
+    println!("the kill landed after the commit in some runs: {seen_new}");
+}
+
+#[test]
+fn a_full_disk_is_a_clear_error_and_keeps_the_previous_outputs() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("out");
+    assert!(map_home("10", &out).status().expect("runs").success());
+    let before = output_set(&out);
+    // A file-size limit makes every write past 4 KiB fail as a full disk does (EFBIG, with
+    // SIGXFSZ ignored, in place of ENOSPC): the same error path, without a small filesystem.
+    let script = "trap '' XFSZ; ulimit -f 4; exec \"$0\" map --deterministic --quiet \
+         --sim-duration 12 --out \"$1\"";
+    let o = Command::new("bash")
+        .args(["-c", script, env!("CARGO_BIN_EXE_cloi")])
+        .arg(&out)
+        .output()
+        .expect("bash runs");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "exit 0 on a full disk: {stderr}");
+    assert!(
+        stderr.contains("writing") && stderr.contains("File too large"),
+        "{stderr}"
+    );
+    assert_eq!(output_set(&out), before, "the previous outputs changed");
+}

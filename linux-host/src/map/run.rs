@@ -533,7 +533,10 @@ fn finish(
         .filter_map(|r| Some((r.stamp, place(r)?)))
         .collect();
     let gpe: Vec<(i64, Se2)> = f.records.iter().map(|r| (r.stamp, r.gpe)).collect();
-    let out = &settings.out;
+    // Every file goes into a staging folder first and the set replaces the previous run's
+    // together, report.json last (see `OutputSet`).
+    let set = crate::io::atomic::OutputSet::begin(&settings.out)?;
+    let out = set.folder();
     write_tum(&out.join("trajectory.tum"), &trajectory)?;
     write_tum(&out.join("gpe.tum"), &gpe)?;
     crate::io::atomic::write_file(&out.join("graph.g2o"), f.g2o.as_bytes())?;
@@ -650,6 +653,7 @@ fn finish(
         }),
     );
     report.write(&out.join("report.json"))?;
+    set.commit("report.json")?;
     Ok(MapRun {
         report,
         trajectory,
