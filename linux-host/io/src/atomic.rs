@@ -127,12 +127,13 @@ const TEMP_PREFIX: &str = ".cloi-";
 /// it together by [`OutputSet::commit`].
 ///
 /// Until the commit the folder keeps the previous run's files untouched, whatever happens to
-/// this run (an error, a full disk, SIGKILL). The commit first removes the previous set's
-/// *marker* (the file every reader should check, such as `report.json`), moves the other files
-/// in (each a rename, so never half a file), and moves the new marker in last: whenever the
-/// marker exists, every file of the set beside it comes from the same run. Staging folders and
-/// temporary files that a killed run left behind are removed when the next set begins, so two
-/// runs must not write into one folder at the same time.
+/// this run (an error, a full disk, SIGKILL). The commit first removes the previous files the
+/// new set replaces, its *marker* (the file every reader should check, such as `report.json`)
+/// first, then moves the new files in (each a rename, so never half a file), the marker last.
+/// A commit cut short therefore leaves old files only or new files only, never both, and no
+/// marker; whenever the marker exists, the whole set beside it comes from its run. Staging
+/// folders and temporary files that a killed run left behind are removed when the next set
+/// begins, so two runs must not write into one folder at the same time.
 #[derive(Debug)]
 pub struct OutputSet {
     dir: PathBuf,
@@ -179,32 +180,33 @@ impl OutputSet {
         self.staging.path()
     }
 
-    /// Moves every staged file into the folder, the `marker` last (see the type's docs), and
-    /// returns their final paths.
+    /// Replaces the folder's files by the staged ones, the `marker` last (see the type's
+    /// docs), and returns their final paths.
     ///
     /// # Errors
-    /// The marker was not staged, or a file could not be moved; the folder then holds no
-    /// marker.
+    /// The marker was not staged (nothing changes), or a file could not be removed or moved
+    /// (the folder then holds no marker).
     pub fn commit(self, marker: &str) -> Result<Vec<PathBuf>> {
         let staged_marker = self.staging.path().join(marker);
         if !staged_marker.is_file() {
             bail!("the output set has no {marker}");
-        }
-        let final_marker = self.dir.join(marker);
-        match fs::remove_file(&final_marker) {
-            Ok(()) => {}
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-            Err(e) => {
-                return Err(e).with_context(|| format!("removing {}", final_marker.display()))
-            }
         }
         let mut names: Vec<_> = fs::read_dir(self.staging.path())
             .with_context(|| format!("listing {}", self.staging.path().display()))?
             .map(|e| e.map(|e| e.file_name()))
             .collect::<std::io::Result<_>>()
             .with_context(|| format!("listing {}", self.staging.path().display()))?;
-        // The marker last; the others in a fixed order.
-        names.sort_by_key(|n| (n.as_os_str() == marker, n.clone()));
+        // The marker first out and last in; the others in a fixed order.
+        names.sort_by_key(|n| (n.as_os_str() != marker, n.clone()));
+        for name in &names {
+            let old = self.dir.join(name);
+            match fs::remove_file(&old) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => return Err(e).with_context(|| format!("removing {}", old.display())),
+            }
+        }
+        names.rotate_left(1);
         let mut moved = Vec::with_capacity(names.len());
         for name in names {
             let (from, to) = (self.staging.path().join(&name), self.dir.join(&name));
