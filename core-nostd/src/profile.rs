@@ -163,11 +163,6 @@ impl<
     /// [`MapperError`] when the configuration does not fit the resources (e.g. a submap grid
     /// of another size than `CELLS`).
     pub fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError> {
-        if config.grid.cells() != CELLS {
-            return Err(MapperError::Storage(
-                "submap grid size differs from the profile's",
-            ));
-        }
         MapperParts {
             graph: PoseGraph::new(&mut self.pose_graph.nodes, &mut self.pose_graph.edges),
             solver: self.solver.buffers(),

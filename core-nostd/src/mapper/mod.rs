@@ -227,8 +227,15 @@ impl<'r> MapperParts<'r> {
     /// heap-allocated ones, so both start a map identically.
     ///
     /// # Errors
-    /// As [`Mapper::new`].
+    /// [`MapperError::Storage`] when the storage was made for another submap grid than
+    /// `config`'s (its pyramid holds [`PYRAMID_LEVELS`] grids of that size), else as
+    /// [`Mapper::new`].
     pub fn start(mut self, config: MapperConfig) -> Result<Mapper<'r>, MapperError> {
+        if self.pyramid.len() != PYRAMID_LEVELS * config.grid.cells() {
+            return Err(MapperError::Storage(
+                "submap grid size differs from the storage's",
+            ));
+        }
         self.graph.clear();
         self.submaps.fill(SubmapMeta::EMPTY);
         *self.local = PointMap::new(config.local_voxel);

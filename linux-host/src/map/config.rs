@@ -16,6 +16,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 use cloi_core::mapper::MapperConfig;
+use cloi_core::profile::{ProfileSpec, AIRPORT, HOME, OFFICE};
 use serde::{Deserialize, Serialize};
 
 /// A memory and size profile of the mapper.
@@ -187,6 +188,15 @@ impl Profile {
             Profile::Home => MapperConfig::home(),
             Profile::Office => MapperConfig::office(),
             Profile::Airport => MapperConfig::airport(),
+        }
+    }
+
+    /// The capacities of this profile's pools (what `cloi-budget` proves).
+    pub fn spec(self) -> ProfileSpec {
+        match self {
+            Profile::Home => HOME,
+            Profile::Office => OFFICE,
+            Profile::Airport => AIRPORT,
         }
     }
 }

@@ -104,11 +104,6 @@ impl HeapResources {
     /// [`MapperError`] when the configuration does not fit the pools (e.g. a submap grid of
     /// another size than the profile's).
     pub fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError> {
-        if config.grid.cells() != self.spec.submap_cells {
-            return Err(MapperError::Storage(
-                "submap grid size differs from the profile's",
-            ));
-        }
         MapperParts {
             graph: PoseGraph::new(&mut self.nodes, &mut self.edges),
             solver: self.solver.buffers(),
@@ -154,7 +149,7 @@ mod tests {
     }
 
     #[test]
-    fn a_heap_mapper_starts_like_a_static_one() {
+    fn a_heap_mapper_starts_empty_and_refuses_another_grid() {
         let mut r = HeapResources::new(HOME);
         let config = MapperConfig::home();
         {

@@ -25,7 +25,6 @@ use cloi_core::mapper::sync::{SyncStats, SYNC_SLOTS, SYNC_WAIT_NS};
 use cloi_core::mapper::{
     BackendStep, Feeder, FrameOutput, Mapper, MapperStats, ScanInput, ScanSlots,
 };
-use cloi_core::profile::{AIRPORT, HOME, OFFICE};
 use cloi_core::storage::NodeId;
 use serde_json::json;
 
@@ -222,11 +221,7 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
     let progress = MapProgress::with_visibility(input.size(), settings.progress);
     let stats_handle = input.stats_handle();
     let wall = Instant::now();
-    let mut res = HeapResources::new(match settings.profile {
-        Profile::Home => HOME,
-        Profile::Office => OFFICE,
-        Profile::Airport => AIRPORT,
-    });
+    let mut res = HeapResources::new(settings.profile.spec());
     let mapper = res
         .mapper(cfg)
         .map_err(|e| anyhow!("profile {:?}: {e}", settings.profile))?;
