@@ -153,6 +153,23 @@ impl<'a> Pyramid<'a> {
         })
     }
 
+    /// The levels already in `storage` from an earlier [`Pyramid::build`] of a `side x side`
+    /// submap with `levels` levels; the caller knows which submap they belong to.
+    ///
+    /// # Errors
+    /// As [`Pyramid::build`] for the sizes.
+    pub fn reuse(side: usize, levels: usize, storage: &'a mut [u8]) -> Result<Self, CsmError> {
+        if levels == 0 || levels > MAX_LEVELS || storage.len() != Pyramid::storage_len(side, levels)
+        {
+            return Err(CsmError::WrongStorage);
+        }
+        Ok(Pyramid {
+            side,
+            levels,
+            data: storage,
+        })
+    }
+
     /// Levels stored.
     pub fn levels(&self) -> usize {
         self.levels

@@ -50,6 +50,15 @@ pub struct FarCsmConfig {
     /// The rotation step is derived from the scan's farthest point, but that distance is taken
     /// as at most this, metres (long beams would make the step needlessly fine).
     pub step_range: f32,
+    /// Half-width of the rotation window around the seed's heading, radians (`PI` or more:
+    /// every heading).
+    pub window_theta: f64,
+    /// Two leaves are distinct matches when their translations differ by more than this,
+    /// metres, on either axis ...
+    pub distinct_xy: f64,
+    /// ... or their headings by more than this, radians: the runner-up
+    /// ([`FarMatch::runner_up`]) is the best leaf distinct from the best one.
+    pub distinct_theta: f64,
 }
 
 impl Default for FarCsmConfig {
@@ -58,6 +67,9 @@ impl Default for FarCsmConfig {
             base_level: 2,
             min_score: 0.6,
             step_range: 12.0,
+            window_theta: PI,
+            distinct_xy: 1.0,
+            distinct_theta: 0.3,
         }
     }
 }
@@ -69,6 +81,10 @@ pub struct FarMatch {
     pub pose: Se2,
     /// Mean of the coarse (max-pooled) occupancy at the scan's points.
     pub score: f32,
+    /// The same for the best pose distinct from this one (see
+    /// [`FarCsmConfig::distinct_xy`]), or the threshold when none reached it: how ambiguous
+    /// the match is (a corridor or a repeated room scores a shifted pose as high).
+    pub runner_up: f32,
     /// Rotation step of the search, radians (the refinement's angular window).
     pub angular_step: f64,
     /// Translation step of the leaves, metres (the refinement's translation window).
@@ -96,6 +112,7 @@ pub struct FarSearch {
     next_top: u32,
     best: u32,
     best_at: Option<(u32, i32, i32)>,
+    second: u32,
     evaluated: u64,
 }
 
@@ -111,6 +128,12 @@ struct Bnb<'p, 'a> {
     window: i32,
     best: u32,
     best_at: Option<(u32, i32, i32)>,
+    /// Best score of a leaf distinct from `best_at`.
+    second: u32,
+    /// Rotations in a full turn, and the distinctness thresholds in rotation steps and cells.
+    angles: i64,
+    distinct_steps: i64,
+    distinct_cells: i32,
     evaluated: u64,
 }
 
@@ -123,13 +146,32 @@ impl Bnb<'_, '_> {
             .sum()
     }
 
+    /// Whether the leaf `(angle, dx, dy)` is a match distinct from the best one.
+    fn distinct(&self, angle: u32, dx: i32, dy: i32) -> bool {
+        let Some((a, x, y)) = self.best_at else {
+            return true;
+        };
+        let d = (angle_offset(angle) - angle_offset(a)).rem_euclid(self.angles);
+        d.min(self.angles - d) > self.distinct_steps
+            || (dx - x).abs() > self.distinct_cells
+            || (dy - y).abs() > self.distinct_cells
+    }
+
     fn descend(&mut self, cells: &[[i32; 2]], angle: u32, k: usize, dx: i32, dy: i32, b: u32) {
-        if b <= self.best {
+        // Cut only what can beat neither the best nor the runner-up.
+        if b <= self.second {
             return;
         }
         if k == self.base {
-            self.best = b;
-            self.best_at = Some((angle, dx, dy));
+            if b > self.best {
+                if self.best_at.is_some() && self.distinct(angle, dx, dy) {
+                    self.second = self.second.max(self.best);
+                }
+                self.best = b;
+                self.best_at = Some((angle, dx, dy));
+            } else if self.distinct(angle, dx, dy) {
+                self.second = b;
+            }
             return;
         }
         let h = 1i32 << (k - 1);
@@ -172,12 +214,16 @@ impl FarSearch {
                 base_level: 2,
                 min_score: 0.6,
                 step_range: 12.0,
+                window_theta: PI,
+                distinct_xy: 1.0,
+                distinct_theta: 0.3,
             },
             started: false,
             next_angle: 0,
             next_top: 0,
             best: 0,
             best_at: None,
+            second: 0,
             evaluated: 0,
         }
     }
@@ -198,7 +244,7 @@ impl FarSearch {
     }
 
     /// Starts a search of `scan` (robot frame) around the world pose `seed`, over translations
-    /// within `window_xy` metres on each axis and every heading.
+    /// within `window_xy` metres on each axis and the headings within `config.window_theta`.
     ///
     /// # Errors
     /// [`CsmError::EmptyScan`] without points, [`CsmError::InvalidConfig`] for a non-finite
@@ -219,7 +265,10 @@ impl FarSearch {
             && window_xy >= 0.0
             && (0.0..=1.0).contains(&config.min_score)
             && config.step_range.is_finite()
-            && config.step_range > 0.0)
+            && config.step_range > 0.0
+            && config.window_theta >= 0.0
+            && config.distinct_xy >= 0.0
+            && config.distinct_theta >= 0.0)
         {
             return Err(CsmError::InvalidConfig);
         }
@@ -241,6 +290,7 @@ impl FarSearch {
         self.next_top = 0;
         self.best = 0;
         self.best_at = None;
+        self.second = 0;
         self.evaluated = 0;
         Ok(())
     }
@@ -280,7 +330,13 @@ impl FarSearch {
             .min(self.config.step_range) as f64;
         let far = far.max(3.0 * coarse);
         let step = libm::acos(1.0 - coarse * coarse / (2.0 * far * far));
-        let angles = libm::ceil(2.0 * PI / step) as u32;
+        let full = libm::ceil(2.0 * PI / step) as u32;
+        // Within the rotation window: the seed's heading and `n` steps to each side.
+        let angles = if self.config.window_theta >= PI {
+            full
+        } else {
+            full.min(2 * (libm::floor(self.config.window_theta / step) as u32) + 1)
+        };
         let window = libm::ceil(self.window_xy / res) as i32;
         let span = 1i32 << top;
         let per_row = (2 * window) / span + 1;
@@ -288,12 +344,17 @@ impl FarSearch {
         let count = self.points.len();
         let threshold = (self.config.min_score as f64 * 255.0 * count as f64) as u32;
         let local = submap.to_local(&self.seed);
+        let floor = threshold.saturating_sub(1);
         let mut bnb = Bnb {
             pyramid,
             base,
             window,
-            best: self.best.max(threshold.saturating_sub(1)),
+            best: self.best.max(floor),
             best_at: self.best_at,
+            second: self.second.max(floor),
+            angles: full as i64,
+            distinct_steps: libm::floor(self.config.distinct_theta / step) as i64,
+            distinct_cells: libm::floor(self.config.distinct_xy / res) as i32,
             evaluated: 0,
         };
         let mut cells: heapless::Vec<[i32; 2], FAR_POINTS> = heapless::Vec::new();
@@ -333,6 +394,7 @@ impl FarSearch {
         }
         self.best = bnb.best;
         self.best_at = bnb.best_at;
+        self.second = bnb.second;
         self.evaluated += bnb.evaluated;
         if self.next_angle < angles {
             return Ok(FarStep::Working);
@@ -351,6 +413,11 @@ impl FarSearch {
         Ok(FarStep::Done(Some(FarMatch {
             pose: submap.origin().compose(&found),
             score: (self.best as f64 / (255.0 * count as f64)) as f32,
+            runner_up: if self.second < threshold {
+                0.0
+            } else {
+                (self.second as f64 / (255.0 * count as f64)) as f32
+            },
             angular_step: step,
             cell: coarse,
         })))
@@ -448,6 +515,38 @@ mod tests {
             libm::hypot(d.x, d.y) < 0.06 && libm::fabs(d.theta) < 0.02,
             "{fine:?}"
         );
+    }
+
+    #[test]
+    fn the_rotation_window_bounds_the_headings_and_the_runner_up_is_a_distinct_pose() {
+        let mut cells = [0i8; SIDE * SIDE];
+        let map = build_map(&mut cells);
+        let mut storage = [0u8; SIDE * SIDE * 5];
+        let pyr = Pyramid::build(&map, 5, &mut storage).unwrap();
+        let truth = Se2::new(0.9, 0.1, 2.5);
+        let mut query: ScanPoints = heapless::Vec::new();
+        scan(truth, 0.05, &mut query);
+        let mut far = FarSearch::new();
+        // Every heading: the truth, and a runner-up that scores less.
+        let seed = Se2::new(0.0, 0.0, 2.5 - 1.0);
+        far.start(&query, &seed, 3.0, &FarCsmConfig::default())
+            .unwrap();
+        let m = run(&mut far, &map, &pyr, u32::MAX).0.expect("a match");
+        let d = m.pose.between(&truth);
+        assert!(libm::hypot(d.x, d.y) < 2.0 * m.cell, "{m:?}");
+        assert!(m.runner_up < m.score, "{m:?}");
+        let every = far.evaluated();
+        // Within 0.3 rad of a seed 1 rad off, the true heading is out of reach: whatever is
+        // found is not the truth, and the search is cheaper.
+        let narrow = FarCsmConfig {
+            window_theta: 0.3,
+            ..FarCsmConfig::default()
+        };
+        far.start(&query, &seed, 3.0, &narrow).unwrap();
+        if let Some(m) = run(&mut far, &map, &pyr, u32::MAX).0 {
+            assert!(libm::fabs(crate::geom::wrap_angle(m.pose.theta - seed.theta)) <= 0.31);
+        }
+        assert!(far.evaluated() < every, "{} vs {every}", far.evaluated());
     }
 
     #[test]

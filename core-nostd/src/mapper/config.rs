@@ -105,6 +105,9 @@ pub struct LoopConfig {
     /// Floors of the loop edge's standard deviations `[metres, radians]` (the ICP information
     /// is overconfident).
     pub min_sigma: [f64; 2],
+    /// Search beyond the window, over every heading and whole submaps, once the uncertainty
+    /// since the last loop closure outgrows `window_max` (module `mapper::far`).
+    pub far_search: bool,
     /// Weight of the max-mixture null hypothesis.
     pub null_weight: f32,
     /// Information scale of the null hypothesis.
@@ -132,6 +135,7 @@ impl Default for LoopConfig {
             max_candidates: 3,
             pyramid_levels: 5,
             min_sigma: [0.03, 0.01],
+            far_search: true,
             null_weight: 1e-3,
             null_scale: 1e-6,
         }

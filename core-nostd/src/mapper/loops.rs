@@ -24,6 +24,7 @@ use nalgebra::Matrix3;
 use super::Mapper;
 use crate::frontend::csm::{search, CsmConfig, Pyramid};
 use crate::frontend::lidar::{MotionNoise, Travel};
+use crate::frontend::scan::ScanPoint;
 use crate::frontend::{align, IcpConfig, KdTree, Submap};
 use crate::geom::{spd_inverse, Info3, Se2};
 use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
@@ -62,9 +63,20 @@ pub(crate) struct LoopCandidate {
 pub(crate) struct LoopState {
     /// Front-end travel at the last loop closure (the search window grows with the travel
     /// since).
-    at_loop: Travel,
+    pub(crate) at_loop: Travel,
     /// Matches waiting for confirmation.
     unconfirmed: heapless::Vec<LoopCandidate, UNCONFIRMED>,
+    /// The submap (slot and anchor serial) whose levels the pyramid storage holds.
+    pub(crate) pyramid_of: Option<(u16, u32)>,
+}
+
+/// Which scan a loop match uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum MatchSource {
+    /// The current scan.
+    Scan,
+    /// The keyframe scan kept by the far search.
+    Far,
 }
 
 impl LoopState {
@@ -72,6 +84,7 @@ impl LoopState {
         LoopState {
             at_loop: Travel::ZERO,
             unconfirmed: heapless::Vec::new(),
+            pyramid_of: None,
         }
     }
 }
@@ -135,7 +148,9 @@ impl Mapper<'_> {
             self.st.stats.loop_searches += 1;
             let (window, angle) = self.window_to(slot, (window, angle));
             let seed = ga.between(&gk);
-            let Some((z, info)) = self.match_in_submap(slot, &seed, window, angle) else {
+            let Some((z, info)) =
+                self.match_in_submap(slot, MatchSource::Scan, &seed, window, angle)
+            else {
                 continue;
             };
             // A match is only believed when a second keyframe matched to the same submap
@@ -241,46 +256,55 @@ impl Mapper<'_> {
             && libm::fabs(e.theta) <= lc.agree_theta
     }
 
-    /// Matches the current scan in submap `slot` around `seed` (pose in the submap's frame);
-    /// the measured pose and its information when accepted.
-    fn match_in_submap(
+    /// Matches the scan of `source` in submap `slot` around `seed` (pose in the submap's
+    /// frame); the measured pose and its information when accepted.
+    pub(crate) fn match_in_submap(
         &mut self,
         slot: usize,
+        source: MatchSource,
         seed: &Se2,
         window: f64,
         angle: f64,
     ) -> Option<(Se2, Matrix3<f64>)> {
         let lc = self.cfg.loops;
-        let per = self.cells_per_submap;
-        let cells = self.cells.get(slot * per..(slot + 1) * per)?;
-        let submap = Submap::from_cells(Se2::IDENTITY, self.cfg.grid, cells).ok()?;
-        let levels = lc.pyramid_levels as usize;
-        let pyramid = Pyramid::build(&submap, levels, self.pyramid).ok()?;
-        let csm = CsmConfig {
-            window_xy: window,
-            window_theta: angle,
-            angular_step: 0.0,
-            min_score: lc.min_score,
-        };
         // Only the points that fall inside the submap at the seed take part: the others would
         // dilute the score and the fitness of a good match.
         let half = self.cfg.grid.side as f32 * self.cfg.grid.resolution * 0.5;
         let (c, s) = (libm::cos(seed.theta) as f32, libm::sin(seed.theta) as f32);
         let (tx, ty) = (seed.x as f32, seed.y as f32);
+        let points: &[ScanPoint] = match source {
+            MatchSource::Scan => self.scan.as_slice(),
+            MatchSource::Far => self.st.far.scan(),
+        };
+        let total = points.len();
         self.loop_scan.clear();
-        for q in self.scan.iter() {
+        for q in points {
             let x = tx + c * q.p[0] - s * q.p[1];
             let y = ty + s * q.p[0] + c * q.p[1];
             if libm::fabsf(x) < half && libm::fabsf(y) < half {
                 let _ = self.loop_scan.push(*q);
             }
         }
-        if MIN_INSIDE_ONE_IN * self.loop_scan.len() < self.scan.len()
-            || (self.loop_scan.len() as u32) < self.cfg.icp.min_points
+        if MIN_INSIDE_ONE_IN * self.loop_scan.len() < total
+            || (self.loop_scan.len() as u32) < self.cfg.icp.min_points.min(total as u32)
         {
             self.st.stats.loops_no_match += 1;
             return None;
         }
+        let (submap, pyramid) = submap_and_pyramid(
+            self.cells,
+            self.submaps,
+            self.pyramid,
+            &mut self.st.loops.pyramid_of,
+            &self.cfg,
+            slot,
+        )?;
+        let csm = CsmConfig {
+            window_xy: window,
+            window_theta: angle,
+            angular_step: 0.0,
+            min_score: lc.min_score,
+        };
         let Ok(found) = search(self.loop_scan, &submap, &pyramid, seed, &csm) else {
             self.st.stats.loops_no_match += 1;
             return None;
@@ -330,4 +354,31 @@ impl Mapper<'_> {
         cov[(2, 2)] += sth * sth;
         Some((refined.pose, spd_inverse(&cov)?))
     }
+}
+
+/// The submap in `slot` (in its anchor's frame) and its search pyramid in `storage`, built
+/// unless `pyramid_of` says the storage already holds this submap's levels.
+pub(crate) fn submap_and_pyramid<'a>(
+    cells: &'a [i8],
+    submaps: &[super::SubmapMeta],
+    storage: &'a mut [u8],
+    pyramid_of: &mut Option<(u16, u32)>,
+    cfg: &super::MapperConfig,
+    slot: usize,
+) -> Option<(Submap<&'a [i8]>, Pyramid<'a>)> {
+    let key = (slot as u16, submaps.get(slot)?.anchor_serial);
+    let per = cfg.grid.cells();
+    let cells = cells.get(slot * per..(slot + 1) * per)?;
+    let submap = Submap::from_cells(Se2::IDENTITY, cfg.grid, cells).ok()?;
+    let levels = cfg.loops.pyramid_levels as usize;
+    let side = cfg.grid.side as usize;
+    let pyramid = if *pyramid_of == Some(key) {
+        Pyramid::reuse(side, levels, storage).ok()?
+    } else {
+        *pyramid_of = None;
+        let p = Pyramid::build(&submap, levels, storage).ok()?;
+        *pyramid_of = Some(key);
+        p
+    };
+    Some((submap, pyramid))
 }

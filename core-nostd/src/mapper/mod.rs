@@ -36,6 +36,7 @@
 //! full submap pool recycles the submap that newer ones cover best.
 
 pub mod config;
+mod far;
 pub mod feed;
 mod frames;
 mod loops;
@@ -147,6 +148,7 @@ pub struct MapperState {
     pub(crate) frames: FrameState,
     pub(crate) submaps: SubmapState,
     pub(crate) loops: LoopState,
+    pub(crate) far: far::FarState,
     pub(crate) backend: BackendSchedule,
 }
 
@@ -161,6 +163,7 @@ impl MapperState {
             frames: FrameState::new(keyframe),
             submaps: SubmapState::NONE,
             loops: LoopState::new(),
+            far: far::FarState::new(),
             backend: BackendSchedule::new(),
         }
     }
@@ -458,6 +461,9 @@ impl<'r> Mapper<'r> {
                 probe.enter(Section::LoopSearch);
                 out.loops = self.close_loops(serial);
             }
+            // Far loop search (beyond the window): a pending far match is tested with this
+            // keyframe, or the keyframe is kept for a search in the back-end's turn.
+            self.far_keyframe(serial);
         }
         Ok(out)
     }
@@ -575,6 +581,10 @@ impl<'r> Mapper<'r> {
                 &self.cfg.noise,
             );
             self.st.gpe.set_anchor(anchor);
+        }
+        // The far loop search takes the back-end's turns the optimizer leaves idle.
+        if step == BackendStep::Idle && self.step_far() {
+            return BackendStep::Working;
         }
         step
     }

@@ -794,3 +794,43 @@ fn a_scan_whose_odometry_never_comes_goes_after_the_wait() {
         assert_eq!(feeder.sync_stats().waited, 1);
     });
 }
+
+/// The `config()` run with the windowed loop search off and its window far smaller than the
+/// drift model's uncertainty, so only the far search can close the lap.
+fn far_only(far_search: bool) -> MapperConfig {
+    let base = config();
+    MapperConfig {
+        loops: LoopConfig {
+            max_candidates: 0,
+            window_min: 0.05,
+            window_max: 0.1,
+            angle_min: 0.02,
+            angle_max: 0.05,
+            far_search,
+            ..base.loops
+        },
+        ..base
+    }
+}
+
+#[test]
+fn a_loop_beyond_the_window_is_found_by_the_far_search_confirmed_and_closes_the_lap() {
+    with_stack(|| {
+        let without = run(far_only(false)).stats;
+        assert_eq!(without.loop_closures, 0, "{without:?}");
+        assert_eq!(without.far_searches, 0, "{without:?}");
+
+        let r = run(far_only(true));
+        let s = r.stats;
+        assert!(s.far_searches > 0, "{s:?}");
+        assert!(s.far_confirmed >= 1, "{s:?}");
+        // The far match and at least one edge per supporting keyframe.
+        assert!(s.loop_closures as usize > far::SUPPORT, "{s:?}");
+        let lap = r.truth.len() / 2;
+        let e0 = r.truth[0].between(&r.truth[lap]);
+        let e = r.final_poses[0].between(&r.final_poses[lap]);
+        let d = e0.between(&e);
+        assert!(libm::hypot(d.x, d.y) < 0.05, "lap closure error {d:?}");
+        assert!(relative_error(&r.final_poses, &r.truth, 20) < 0.05);
+    });
+}

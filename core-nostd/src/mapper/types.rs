@@ -48,6 +48,14 @@ pub struct MapperStats {
     pub loops_rejected: u32,
     /// Matches not (yet) confirmed by a second agreeing one.
     pub loops_unconfirmed: u32,
+    /// Submaps searched by the far loop search (every heading, the whole submap).
+    pub far_searches: u32,
+    /// Far matches refined and held as hypotheses.
+    pub far_hypotheses: u32,
+    /// Hypotheses confirmed by the following keyframes (their matches became loop edges).
+    pub far_confirmed: u32,
+    /// Hypotheses dropped for lack of support.
+    pub far_refuted: u32,
     /// GPE updates solved.
     pub gpe_solved: u32,
     /// Frames that used the worst-case prediction.
@@ -86,6 +94,10 @@ impl MapperStats {
         loops_no_match: 0,
         loops_rejected: 0,
         loops_unconfirmed: 0,
+        far_searches: 0,
+        far_hypotheses: 0,
+        far_confirmed: 0,
+        far_refuted: 0,
         gpe_solved: 0,
         gpe_predicted: 0,
         optimizations: 0,

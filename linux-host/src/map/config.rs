@@ -123,6 +123,9 @@ pub struct LoopClosureSection {
     pub min_score: f32,
     /// Most candidate submaps searched per keyframe.
     pub max_candidates: u8,
+    /// Search beyond the window (every heading, whole submaps) where the drift since a
+    /// submap outgrows it; such matches count only when the following keyframes confirm them.
+    pub far_search: bool,
 }
 
 /// Global pose estimation (the real-time pose of every frame).
@@ -251,6 +254,7 @@ impl MapConfig {
                 search_window_theta: c.loops.angle_max,
                 min_score: c.loops.min_score,
                 max_candidates: c.loops.max_candidates,
+                far_search: c.loops.far_search,
             },
             gpe,
             backend: BackendSection {
@@ -290,6 +294,7 @@ impl MapConfig {
         c.loops.angle_max = l.search_window_theta;
         c.loops.min_score = l.min_score;
         c.loops.max_candidates = l.max_candidates;
+        c.loops.far_search = l.far_search;
         let b = &self.backend;
         c.backend.every_keyframes = b.optimize_every_keyframes;
         c.backend.max_iterations = b.iterations;

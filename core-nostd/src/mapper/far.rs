@@ -1,0 +1,759 @@
+//! Far loop search: loop closures beyond the windowed search of module `loops` (the paper's
+//! loop constraints, section III-B.2, where the drift is too large for a local window),
+//! proposed by a search over the whole submap and every heading the drift allows, and
+//! accepted only when the match is unique and the following keyframes confirm it.
+//!
+//! **Where.** The windowed search looks for a revisit within a few standard deviations of the
+//! front-end drift, clamped to `window_max` and `angle_max`. For a finished submap whose
+//! uncertainty relative to the keyframe (the motion model over the front-end travel since the
+//! submap's anchor, unclamped) outgrows that clamp, the true revisit may lie outside every
+//! window: a long loop, a hall wider than the LiDAR's range, a heading lost without a gyro.
+//! Such submaps within that uncertainty (plus a submap's half-diagonal) are searched with one
+//! keyframe's scan (subsampled and kept here), nearest first, [`PER_KEYFRAME`] per keyframe,
+//! the next keyframes continuing outwards.
+//!
+//! **How much work.** Each submap is searched by [`FarSearch`] (branch and bound at a coarse
+//! level of the pyramid over the submap and the headings within the uncertainty, as
+//! Cartographer's global constraint search does), then refined like a windowed match. The
+//! search runs in the back-end's turn, at most [`STEP_BUDGET`] candidate evaluations per
+//! back-end step and only while no optimization runs, so it never delays a frame.
+//!
+//! **Accepting a far match.** A far match is a hypothesis, not yet a constraint: an aliased
+//! place (a repeated office, a plain corridor, a new room like an old one) can match as well
+//! as the true one, and one wrong edge across a large drift bends the whole map. Four tests,
+//! each against a different way of being wrong:
+//! 1. *Unique in its submap*: no pose distinct from it (1 m, 0.3 rad) scores
+//!    [`AMBIGUITY`] of its score (a corridor or a symmetric room fails).
+//! 2. *Consistent with the map's free space*: at most [`MAX_CONFLICT`] of its points land where
+//!    the submap saw only free space (a look-alike place puts walls where the map sees
+//!    through).
+//! 3. *Unique among the submaps*: every candidate submap is searched again for the same
+//!    keyframe, with the threshold raised to [`AMBIGUITY`] of its score; a match at a distinct
+//!    place in the world drops it (a repeated office in another submap).
+//! 4. *Confirmed by the following keyframes*: each is matched, by the windowed search seeded
+//!    where the hypothesis and the front-end motion since put it, in up to [`VERIFY_SUBMAPS`]
+//!    submaps around that place; a match there supports it (the pair is consistent around the
+//!    cycle, as in pairwise consistency maximisation). [`SUPPORT`] supporting keyframes spread
+//!    over a submap length of travel and two submaps confirm it; [`REFUTE`] tested keyframes
+//!    without support, or [`VERIFY_SUBMAP_LENGTHS`] submap lengths of travel, drop it.
+//!
+//! A confirmed hypothesis' matches join the graph as loop edges without the max-mixture null
+//! hypothesis: their residual at the drifted estimate is large by construction, and the null
+//! component would switch a true correction off.
+
+use super::loops::{submap_and_pyramid, MatchSource};
+use super::Mapper;
+use crate::frontend::far_csm::{FarCsmConfig, FarMatch, FarSearch, FarStep, FAR_POINTS};
+use crate::frontend::lidar::{MotionNoise, Travel};
+use crate::frontend::scan::ScanPoint;
+use crate::frontend::Submap;
+use crate::geom::{Info3, Se2};
+use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
+use crate::storage::NodeId;
+
+/// Submaps searched for one keyframe before the next keyframe takes over.
+pub const PER_KEYFRAME: usize = 8;
+/// Candidate evaluations of the far search per back-end step.
+pub const STEP_BUDGET: u32 = 4000;
+/// Pyramid level the far search scores at (4 cells per step at level 2).
+const BASE_LEVEL: u8 = 2;
+/// A far match is ambiguous, and not taken, when a pose distinct from it (1 m or 0.3 rad away)
+/// scores at least this share of its score.
+const AMBIGUITY: f32 = 0.9;
+/// Two matches are distinct places when their poses in the world differ by more than this,
+/// metres ...
+const DISTINCT_XY: f64 = 1.0;
+/// ... or radians.
+const DISTINCT_THETA: f64 = 0.3;
+/// Largest share of a match's points that may land where the map saw only free space (people,
+/// doors and moved furniture cause a few).
+const MAX_CONFLICT: f32 = 0.03;
+/// Log-odds at or below which a cell counts as seen free (about three net free observations).
+const FREE: i8 = -12;
+/// Submaps a following keyframe is matched in to test a hypothesis.
+pub const VERIFY_SUBMAPS: usize = 2;
+/// Supporting keyframes that confirm a hypothesis ...
+pub const SUPPORT: usize = 3;
+/// ... spread over at least this many submap lengths of travel after the matched keyframe, so
+/// that a structure repeated within a submap's extent cannot confirm itself ...
+pub const SUPPORT_SUBMAPS: f64 = 1.0;
+/// ... and in at least this many distinct submaps.
+pub const SUPPORT_DISTINCT: usize = 2;
+/// Most supporting matches kept as edges.
+const SUPPORT_EDGES: usize = 8;
+/// Tested keyframes without support that drop a hypothesis.
+pub const REFUTE: u8 = 3;
+/// Travel after the matched keyframe within which a hypothesis must be confirmed, in submap
+/// lengths.
+pub const VERIFY_SUBMAP_LENGTHS: f64 = 3.0;
+/// Allowed disagreement of a supporting match per metre of front-end motion and of graph
+/// distance between the submaps (the drift over that distance).
+const AGREE_PER_METRE: f64 = 0.02;
+
+/// A refined match of a keyframe in a submap.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct FarMatchEdge {
+    /// Keyframe serial.
+    serial: u32,
+    /// Anchor serial of the submap (the edge's other node).
+    anchor: u32,
+    /// Pose of the keyframe in the anchor's frame.
+    z: Se2,
+    info: Info3,
+}
+
+/// A submap to search, with the keyframe's uncertainty relative to it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Queued {
+    distance: f64,
+    slot: u16,
+    anchor: u32,
+    radius: f64,
+    angle: f64,
+}
+
+/// A far match waiting for the following keyframes to confirm it.
+#[derive(Clone, Debug)]
+struct Hypothesis {
+    first: FarMatchEdge,
+    /// Front-end travel at the matched keyframe.
+    travel: Travel,
+    support: heapless::Vec<FarMatchEdge, SUPPORT_EDGES>,
+    /// The matched keyframe's pose in the world under the hypothesis.
+    world: Se2,
+    /// Coarse score of the far match.
+    score: f32,
+    /// Every candidate submap was searched again without a distinct place scoring as well.
+    swept: bool,
+    /// The sweep's last band is queued.
+    last_band: bool,
+    /// Distinct keyframes among the support.
+    supporting: usize,
+    unsupported: u8,
+}
+
+/// The far search's memory between keyframes and back-end steps.
+#[derive(Clone, Debug)]
+pub(crate) struct FarState {
+    search: FarSearch,
+    /// The searched keyframe's scan, subsampled.
+    scan: heapless::Vec<ScanPoint, FAR_POINTS>,
+    /// Its serial and graph pose when the search was planned.
+    serial: u32,
+    pose: Se2,
+    /// Submaps still to search for it, nearest last.
+    queue: heapless::Vec<Queued, PER_KEYFRAME>,
+    /// The submap being searched (slot, anchor serial).
+    current: Option<(u16, u32)>,
+    /// Its front-end travel.
+    travel: Travel,
+    /// The keyframe is kept and its search is still to plan.
+    planned: bool,
+    /// Distance from the keyframe up to which the previous keyframes' searches covered the
+    /// candidates, metres (negative: none).
+    reached: f64,
+    hypothesis: Option<Hypothesis>,
+}
+
+impl FarState {
+    pub(crate) const fn new() -> Self {
+        FarState {
+            search: FarSearch::new(),
+            scan: heapless::Vec::new(),
+            serial: 0,
+            pose: Se2::IDENTITY,
+            travel: Travel::ZERO,
+            planned: false,
+            queue: heapless::Vec::new(),
+            current: None,
+            reached: -1.0,
+            hypothesis: None,
+        }
+    }
+
+    /// The kept keyframe scan.
+    pub(crate) fn scan(&self) -> &[ScanPoint] {
+        &self.scan
+    }
+
+    /// No search planned or running.
+    fn idle(&self) -> bool {
+        self.current.is_none() && self.queue.is_empty()
+    }
+
+    /// Nothing kept, planned or running.
+    fn free(&self) -> bool {
+        self.idle() && !self.planned
+    }
+}
+
+impl Mapper<'_> {
+    /// After keyframe `serial` was made: tests a pending hypothesis with it, or keeps its scan
+    /// for a far search, which is planned and run in the back-end's turn.
+    pub(crate) fn far_keyframe(&mut self, serial: u32) {
+        if !self.cfg.loops.far_search {
+            return;
+        }
+        if self.st.far.hypothesis.is_some() {
+            self.verify_far(serial);
+            return;
+        }
+        if !self.st.far.free() {
+            return;
+        }
+        let Some(k) = self.node_of(serial) else {
+            return;
+        };
+        let (Some(gk), Some(meta)) = (self.graph.nodes().get(k).map(|n| n.pose), self.meta.get(k))
+        else {
+            return;
+        };
+        let travel = meta.travel;
+        let far = &mut self.st.far;
+        far.scan.clear();
+        let stride = self.scan.len().div_ceil(FAR_POINTS).max(1);
+        for q in self.scan.iter().step_by(stride) {
+            let _ = far.scan.push(*q);
+        }
+        far.serial = serial;
+        far.pose = gk;
+        far.travel = travel;
+        far.planned = true;
+    }
+
+    /// The uncertainty of the kept keyframe relative to the submap `m` (`sigmas` standard
+    /// deviations of the front-end motion since its anchor, unclamped): position radius and
+    /// heading half-width, at least the windowed search's; and whether either exceeds what the
+    /// windowed search covers.
+    fn far_window(&self, m: &super::SubmapMeta) -> (f64, f64, bool) {
+        let lc = &self.cfg.loops;
+        let since = self.st.far.travel.since(&m.anchor_travel);
+        let cov = self.cfg.noise.over(&since);
+        let lever = lc.window_lever * libm::fabs(since.path);
+        let var_xy = cov[(0, 0)].max(cov[(1, 1)]) + cov[(2, 2)] * lever * lever;
+        let radius = lc.sigmas * libm::sqrt(var_xy);
+        let angle = lc.sigmas * libm::sqrt(cov[(2, 2)]);
+        let due = radius > lc.window_max || angle > lc.angle_max;
+        (radius.max(lc.window_max), angle.max(lc.angle_max), due)
+    }
+
+    /// Queues the submaps the kept keyframe is searched in: the finished ones within its
+    /// uncertainty relative to them (plus a submap's half-diagonal) and, unless a hypothesis
+    /// is being swept for alternatives, only those where that uncertainty exceeds the
+    /// windowed search's; the nearest beyond the distance the previous searches reached
+    /// (starting again from the nearest when they have passed them all).
+    fn plan_far(&mut self) {
+        let sweeping = self.st.far.hypothesis.is_some();
+        self.st.far.planned = false;
+        let lc = self.cfg.loops;
+        let (serial, gk) = (self.st.far.serial, self.st.far.pose);
+        let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
+        let beyond = self.st.far.reached;
+        let mut taken = heapless::Vec::<Queued, PER_KEYFRAME>::new();
+        for (i, m) in self.submaps.iter().enumerate() {
+            if !m.in_use || m.active || m.anchor_serial + lc.min_keyframe_gap > serial {
+                continue;
+            }
+            let (radius, angle, due) = self.far_window(m);
+            let Some(ga) = self
+                .keyframe_pose(m.anchor_serial)
+                .filter(|_| due || sweeping)
+            else {
+                continue;
+            };
+            let d = libm::hypot(ga.x - gk.x, ga.y - gk.y);
+            if d > radius + half * core::f64::consts::SQRT_2 || d <= beyond {
+                continue;
+            }
+            let q = Queued {
+                distance: d,
+                slot: i as u16,
+                anchor: m.anchor_serial,
+                radius,
+                angle,
+            };
+            if !taken.is_full() {
+                let _ = taken.push(q);
+            } else if let Some(far) =
+                (0..taken.len()).max_by(|&a, &b| taken[a].distance.total_cmp(&taken[b].distance))
+            {
+                if taken[far].distance > d {
+                    taken[far] = q;
+                }
+            }
+        }
+        self.st.far.reached = if taken.is_full() {
+            taken.iter().map(|q| q.distance).fold(beyond, f64::max)
+        } else {
+            -1.0
+        };
+        if !taken.is_empty() {
+            debug!(
+                "far search of keyframe {}: {} submaps beyond {} m",
+                serial,
+                taken.len(),
+                beyond
+            );
+        }
+        // Nearest last: the queue is popped from the end.
+        taken.sort_unstable_by(|a, b| b.distance.total_cmp(&a.distance));
+        self.st.far.queue = taken;
+    }
+
+    /// One back-end step of the far search; whether it did any work.
+    pub(crate) fn step_far(&mut self) -> bool {
+        let sweeping = match &self.st.far.hypothesis {
+            Some(h) if h.swept => return false,
+            Some(_) => true,
+            None => false,
+        };
+        if !self.cfg.loops.far_search {
+            return false;
+        }
+        if self.st.far.planned && self.st.far.idle() {
+            self.plan_far();
+            if sweeping {
+                if self.st.far.reached < 0.0 {
+                    // The last band: the sweep ends with it.
+                    if let Some(h) = self.st.far.hypothesis.as_mut() {
+                        h.last_band = true;
+                    }
+                } else {
+                    self.st.far.planned = true;
+                }
+                if self.st.far.queue.is_empty() {
+                    self.end_band();
+                }
+                return true;
+            }
+            // Planning alone, with nothing to search, is not work worth a back-end turn.
+            return !self.st.far.queue.is_empty();
+        }
+        let Some((slot, anchor)) = self.far_current() else {
+            // A sweep whose last submaps were gone (recycled) ends here.
+            if sweeping && !self.st.far.planned {
+                self.end_band();
+            }
+            return false;
+        };
+        let Some((submap, pyramid)) = submap_and_pyramid(
+            self.cells,
+            self.submaps,
+            self.pyramid,
+            &mut self.st.loops.pyramid_of,
+            &self.cfg,
+            slot as usize,
+        ) else {
+            self.st.far.current = None;
+            return true;
+        };
+        let step = self.st.far.search.step(&submap, &pyramid, STEP_BUDGET);
+        let found = match step {
+            Ok(FarStep::Working) => return true,
+            Ok(FarStep::Done(found)) => found,
+            Err(_) => None,
+        };
+        self.st.far.current = None;
+        self.st.far.search.cancel();
+        if sweeping {
+            self.sweep_match(anchor, found.as_ref());
+            if self.st.far.queue.is_empty() && !self.st.far.planned {
+                self.end_band();
+            }
+            return true;
+        }
+        if let Some(m) = found {
+            debug!(
+                "far match of keyframe {} in submap {}: score {} runner-up {} at {} {} {}",
+                self.st.far.serial, anchor, m.score, m.runner_up, m.pose.x, m.pose.y, m.pose.theta
+            );
+        }
+        // An ambiguous place (a corridor, a repeated room) is no evidence of where the robot
+        // is, however well it fits.
+        let Some(m) = found.filter(|m| m.runner_up < AMBIGUITY * m.score) else {
+            return true;
+        };
+        let serial = self.st.far.serial;
+        let Some((z, info)) = self.match_in_submap(
+            slot as usize,
+            MatchSource::Far,
+            &m.pose,
+            m.cell,
+            m.angular_step,
+        ) else {
+            return true;
+        };
+        let (inside, conflicting) = self.free_space_conflicts(slot as usize, MatchSource::Far, &z);
+        debug!(
+            "far conflicts of keyframe {} in submap {}: {} of {}",
+            serial, anchor, conflicting, inside
+        );
+        if !consistent_with_free_space(inside, conflicting) {
+            return true;
+        }
+        let Some(meta) = self.node_of(serial).and_then(|i| self.meta.get(i)) else {
+            return true;
+        };
+        self.st.stats.far_hypotheses += 1;
+        debug!(
+            "far hypothesis: keyframe {} in submap {} at {} {} {}",
+            serial, anchor, z.x, z.y, z.theta
+        );
+        let travel = meta.travel;
+        let Some(ga) = self.keyframe_pose(anchor) else {
+            return true;
+        };
+        self.st.far.hypothesis = Some(Hypothesis {
+            first: FarMatchEdge {
+                serial,
+                anchor,
+                z,
+                info,
+            },
+            travel,
+            support: heapless::Vec::new(),
+            supporting: 0,
+            unsupported: 0,
+            world: ga.compose(&z),
+            score: m.score,
+            swept: false,
+            last_band: false,
+        });
+        // Sweep every candidate again, from the nearest, for a distinct place that fits as
+        // well.
+        let far = &mut self.st.far;
+        far.queue.clear();
+        far.reached = -1.0;
+        far.planned = true;
+        true
+    }
+
+    /// The kept scan's points at `pose` in submap `slot` that fall on cells the submap has
+    /// observed, and those of them where it saw only free space all around (an obstacle where
+    /// the map says there is none).
+    fn free_space_conflicts(&self, slot: usize, source: MatchSource, pose: &Se2) -> (u32, u32) {
+        let per = self.cells_per_submap;
+        let Some(cells) = self.cells.get(slot * per..(slot + 1) * per) else {
+            return (0, 0);
+        };
+        let Ok(submap) = Submap::from_cells(Se2::IDENTITY, self.cfg.grid, cells) else {
+            return (0, 0);
+        };
+        let (c, s) = (libm::cos(pose.theta) as f32, libm::sin(pose.theta) as f32);
+        let (tx, ty) = (pose.x as f32, pose.y as f32);
+        let (mut inside, mut conflicting) = (0u32, 0u32);
+        let points: &[ScanPoint] = match source {
+            MatchSource::Scan => self.scan.as_slice(),
+            MatchSource::Far => self.st.far.scan(),
+        };
+        for q in points {
+            let p = [tx + c * q.p[0] - s * q.p[1], ty + s * q.p[0] + c * q.p[1]];
+            let g = submap.local_to_cell(p);
+            let (ix, iy) = (libm::floorf(g[0]) as i32, libm::floorf(g[1]) as i32);
+            let mut seen = false;
+            let mut most = i8::MIN;
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    if let Some(v) = submap.cell(ix + dx, iy + dy) {
+                        seen |= v != 0;
+                        most = most.max(v);
+                    }
+                }
+            }
+            if seen {
+                inside += 1;
+                if most <= FREE {
+                    conflicting += 1;
+                }
+            }
+        }
+        (inside, conflicting)
+    }
+
+    /// A search of the sweep finished in the submap anchored at `anchor`: a match above the
+    /// sweep's threshold at a place distinct from the hypothesis' makes it ambiguous.
+    fn sweep_match(&mut self, anchor: u32, found: Option<&FarMatch>) {
+        let (Some(m), Some(ga)) = (found, self.keyframe_pose(anchor)) else {
+            return;
+        };
+        let Some(h) = self.st.far.hypothesis.as_ref() else {
+            return;
+        };
+        let d = h.world.between(&ga.compose(&m.pose));
+        if libm::hypot(d.x, d.y) > DISTINCT_XY || libm::fabs(d.theta) > DISTINCT_THETA {
+            debug!(
+                "far hypothesis of keyframe {} ambiguous: submap {} scores {} (hypothesis {})",
+                h.first.serial, anchor, m.score, h.score
+            );
+            self.drop_hypothesis();
+        }
+    }
+
+    /// The searches of one band of the sweep are done; after the last band the hypothesis is
+    /// unique within its uncertainty.
+    fn end_band(&mut self) {
+        if let Some(h) = self.st.far.hypothesis.as_mut() {
+            debug!(
+                "far sweep of keyframe {}: band done (last {})",
+                h.first.serial, h.last_band
+            );
+            if h.last_band {
+                h.swept = true;
+                self.st.far.planned = false;
+            }
+        }
+    }
+
+    /// Forgets the hypothesis and the search state (counted as refuted).
+    fn drop_hypothesis(&mut self) {
+        let far = &mut self.st.far;
+        far.hypothesis = None;
+        far.queue.clear();
+        far.current = None;
+        far.search.cancel();
+        far.planned = false;
+        far.reached = -1.0;
+        self.st.stats.far_refuted += 1;
+    }
+
+    /// The submap being searched, starting the search of the next queued one when needed.
+    fn far_current(&mut self) -> Option<(u16, u32)> {
+        if let Some(c) = self.st.far.current {
+            return Some(c);
+        }
+        let lc = self.cfg.loops;
+        while let Some(Queued {
+            slot,
+            anchor,
+            radius,
+            angle,
+            ..
+        }) = self.st.far.queue.pop()
+        {
+            let valid = self
+                .submaps
+                .get(slot as usize)
+                .is_some_and(|m| m.in_use && !m.active && m.anchor_serial == anchor);
+            let Some(ga) = self.keyframe_pose(anchor).filter(|_| valid) else {
+                continue;
+            };
+            // Over the part of the submap within the uncertainty (all of it when that is wider)
+            // and the headings within it, nearest to the estimated heading first.
+            let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
+            let local = ga.between(&self.st.far.pose);
+            let (seed, window) = if radius >= half {
+                (Se2::new(0.0, 0.0, local.theta), half)
+            } else {
+                let x = local.x.clamp(-half, half);
+                let y = local.y.clamp(-half, half);
+                (Se2::new(x, y, local.theta), radius)
+            };
+            // The sweep of a hypothesis only looks for places that score as well as it.
+            let min_score = match &self.st.far.hypothesis {
+                Some(h) => lc.min_score.max(AMBIGUITY * h.score),
+                None => lc.min_score,
+            };
+            let config = FarCsmConfig {
+                base_level: BASE_LEVEL.min(lc.pyramid_levels.saturating_sub(2)),
+                min_score,
+                window_theta: angle,
+                ..FarCsmConfig::default()
+            };
+            let far = &mut self.st.far;
+            if far.search.start(&far.scan, &seed, window, &config).is_ok() {
+                far.current = Some((slot, anchor));
+                self.st.stats.far_searches += 1;
+                return Some((slot, anchor));
+            }
+        }
+        None
+    }
+
+    /// Tests the pending hypothesis with keyframe `serial`: matched where the hypothesis puts
+    /// it, in the submaps around that place.
+    fn verify_far(&mut self, serial: u32) {
+        let Some(h) = self.st.far.hypothesis.clone() else {
+            return;
+        };
+        let lc = self.cfg.loops;
+        let travel = self.st.frontend.travel();
+        let refute = |m: &mut Self| m.drop_hypothesis();
+        let (Some(fh), Some(fs), Some(gh)) = (
+            self.node_of(h.first.serial)
+                .and_then(|i| self.meta.get(i))
+                .map(|m| m.frontend),
+            self.node_of(serial)
+                .and_then(|i| self.meta.get(i))
+                .map(|m| m.frontend),
+            self.keyframe_pose(h.first.anchor),
+        ) else {
+            refute(self);
+            return;
+        };
+        let side = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64;
+        let travelled = travel.path - h.travel.path;
+        if travelled > VERIFY_SUBMAP_LENGTHS * side {
+            refute(self);
+            return;
+        }
+        let odo = fh.between(&fs);
+        let moved = libm::hypot(odo.x, odo.y);
+        // Where the hypothesis puts this keyframe in the world.
+        let predicted = gh.compose(&h.first.z).compose(&odo);
+        let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
+        let mut near = heapless::Vec::<(f64, usize, u32), VERIFY_SUBMAPS>::new();
+        for (slot, m) in self.submaps.iter().enumerate() {
+            if !m.in_use || m.active || m.anchor_serial + lc.min_keyframe_gap > serial {
+                continue;
+            }
+            let Some(ga) = self.keyframe_pose(m.anchor_serial) else {
+                continue;
+            };
+            let local = ga.between(&predicted);
+            if libm::fabs(local.x) > half || libm::fabs(local.y) > half {
+                continue;
+            }
+            let d = libm::hypot(local.x, local.y);
+            if near.is_full() {
+                if let Some(far) = (0..near.len()).max_by(|&a, &b| near[a].0.total_cmp(&near[b].0))
+                {
+                    if near[far].0 > d {
+                        near[far] = (d, slot, m.anchor_serial);
+                    }
+                }
+            } else {
+                let _ = near.push((d, slot, m.anchor_serial));
+            }
+        }
+        if near.is_empty() {
+            return;
+        }
+        let mut supported = false;
+        for &(_, slot, anchor) in near.iter() {
+            let Some(ga) = self.keyframe_pose(anchor) else {
+                continue;
+            };
+            let seed = ga.between(&predicted);
+            let Some((z, info)) =
+                self.match_in_submap(slot, MatchSource::Scan, &seed, lc.window_min, lc.angle_min)
+            else {
+                continue;
+            };
+            let (inside, conflicting) = self.free_space_conflicts(slot, MatchSource::Scan, &z);
+            if !consistent_with_free_space(inside, conflicting) {
+                continue;
+            }
+            let e = seed.between(&z);
+            let span = moved + libm::hypot(ga.x - gh.x, ga.y - gh.y);
+            if libm::hypot(e.x, e.y) <= lc.agree_xy + AGREE_PER_METRE * span
+                && libm::fabs(e.theta) <= lc.agree_theta
+            {
+                if let Some(hyp) = self.st.far.hypothesis.as_mut() {
+                    let edge = FarMatchEdge {
+                        serial,
+                        anchor,
+                        z,
+                        info,
+                    };
+                    keep_support(&mut hyp.support, &hyp.first, edge);
+                }
+                supported = true;
+            }
+        }
+        let Some(hyp) = self.st.far.hypothesis.as_mut() else {
+            return;
+        };
+        if supported {
+            hyp.supporting += 1;
+        } else {
+            hyp.unsupported += 1;
+        }
+        debug!(
+            "far hypothesis tested by keyframe {}: supported {} ({} / {})",
+            serial, supported, hyp.supporting, hyp.unsupported
+        );
+        if hyp.unsupported >= REFUTE {
+            refute(self);
+        } else if hyp.swept
+            && hyp.supporting >= SUPPORT
+            && travelled >= SUPPORT_SUBMAPS * side
+            && distinct_anchors(&hyp.first, &hyp.support) >= SUPPORT_DISTINCT
+        {
+            self.accept_far();
+        }
+    }
+
+    /// Adds the confirmed hypothesis' matches as loop edges.
+    fn accept_far(&mut self) {
+        let Some(h) = self.st.far.hypothesis.take() else {
+            return;
+        };
+        let mut added = 0u32;
+        for e in core::iter::once(&h.first).chain(h.support.iter()) {
+            let (Some(a), Some(k)) = (self.node_of(e.anchor), self.node_of(e.serial)) else {
+                continue;
+            };
+            // Plain least squares: the group is the evidence, and the null component of a
+            // max-mixture would reject a large correction at the drifted estimate.
+            let mut edge = PoseEdge::new(
+                NodeId(a as u32),
+                NodeId(k as u32),
+                e.z,
+                e.info,
+                EdgeKind::Loop,
+            );
+            edge.robust = RobustKernel::None;
+            if self.graph.add_edge(edge).is_ok() {
+                debug!("far loop edge: {} -> {}", e.anchor, e.serial);
+                added += 1;
+            }
+        }
+        // The next search starts again from the nearest submaps.
+        self.st.far.reached = -1.0;
+        if added > 0 {
+            self.st.stats.far_confirmed += 1;
+            self.st.stats.loop_closures += added;
+            self.st.backend.loop_added();
+            self.st.loops.at_loop = self.st.frontend.travel();
+        }
+    }
+}
+
+/// Whether a match whose points fall on `inside` observed cells, `conflicting` of them where
+/// the map saw only free space, agrees with the map's free space: a revisit sees the walls
+/// the map has; a place that merely looks alike puts some of its walls where the map saw
+/// through.
+fn consistent_with_free_space(inside: u32, conflicting: u32) -> bool {
+    inside > 0 && (conflicting as f32) <= MAX_CONFLICT * inside as f32
+}
+
+/// Adds `edge` to a hypothesis' `support`; when full, a match in a submap not yet among them
+/// replaces one whose submap is represented twice, so the distinct submaps are kept.
+fn keep_support(
+    support: &mut heapless::Vec<FarMatchEdge, SUPPORT_EDGES>,
+    first: &FarMatchEdge,
+    edge: FarMatchEdge,
+) {
+    let Err(edge) = support.push(edge) else {
+        return;
+    };
+    if first.anchor == edge.anchor || support.iter().any(|e| e.anchor == edge.anchor) {
+        return;
+    }
+    let twice = (0..support.len()).rev().find(|&i| {
+        let a = support[i].anchor;
+        a == first.anchor || support.iter().filter(|e| e.anchor == a).count() > 1
+    });
+    if let Some(i) = twice {
+        support[i] = edge;
+    }
+}
+
+/// Distinct submaps among a hypothesis' matches.
+fn distinct_anchors(first: &FarMatchEdge, support: &[FarMatchEdge]) -> usize {
+    let all = || core::iter::once(first).chain(support.iter());
+    all()
+        .enumerate()
+        .filter(|&(i, e)| all().take(i).all(|f| f.anchor != e.anchor))
+        .count()
+}
