@@ -190,39 +190,68 @@ impl Mapper<'_> {
                 self.st.stats.loops_unconfirmed += 1;
                 continue;
             };
+            let robust = RobustKernel::max_mixture_with_null(lc.null_weight, lc.null_scale);
             for c in [first, candidate] {
-                let Some(to) = self.node_of(c.serial) else {
-                    continue;
-                };
-                let mut edge = PoseEdge::new(
-                    NodeId(a as u32),
-                    NodeId(to as u32),
-                    c.z,
-                    c.info,
-                    EdgeKind::Loop,
-                );
-                edge.robust = RobustKernel::max_mixture_with_null(lc.null_weight, lc.null_scale);
-                if self.graph.add_edge(edge).is_ok() {
+                if self.add_loop_edge(a, c.serial, c.z, c.info, robust) {
                     added += 1;
-                    self.st.stats.loop_closures += 1;
-                    self.st.backend.loop_added();
-                    self.st.loops.at_loop = travel;
                 }
             }
         }
         added
     }
 
+    /// Adds a loop edge from the graph node `anchor` (a submap's anchor) to keyframe `serial`
+    /// measuring `z` with `info`; counts it, asks for an optimization and restarts the travel
+    /// since the last loop closure. Whether it was added (the keyframe may have been pruned).
+    pub(crate) fn add_loop_edge(
+        &mut self,
+        anchor: usize,
+        serial: u32,
+        z: Se2,
+        info: Info3,
+        robust: RobustKernel,
+    ) -> bool {
+        let Some(to) = self.node_of(serial) else {
+            return false;
+        };
+        let mut edge = PoseEdge::new(
+            NodeId(anchor as u32),
+            NodeId(to as u32),
+            z,
+            info,
+            EdgeKind::Loop,
+        );
+        edge.robust = robust;
+        if self.graph.add_edge(edge).is_err() {
+            return false;
+        }
+        self.st.stats.loop_closures += 1;
+        self.st.backend.loop_added();
+        self.st.loops.at_loop = self.st.frontend.travel();
+        true
+    }
+
     /// Half-widths `(metres, radians)` of the search after a front-end `travel`: `sigmas`
     /// standard deviations of the motion model, clamped.
     fn search_window(&self, travel: &Travel) -> (f64, f64) {
+        let lc = &self.cfg.loops;
+        let (xy, theta) = self.uncertainty(travel);
+        (
+            xy.clamp(lc.window_min, lc.window_max),
+            theta.clamp(lc.angle_min, lc.angle_max),
+        )
+    }
+
+    /// `sigmas` standard deviations `(metres, radians)` of the position (with the heading's
+    /// lever arm) and heading uncertainty of the front-end motion over `travel`, unclamped.
+    pub(crate) fn uncertainty(&self, travel: &Travel) -> (f64, f64) {
         let lc = &self.cfg.loops;
         let cov = self.cfg.noise.over(travel);
         let lever = lc.window_lever * libm::fabs(travel.path);
         let var_xy = cov[(0, 0)].max(cov[(1, 1)]) + cov[(2, 2)] * lever * lever;
         (
-            (lc.sigmas * libm::sqrt(var_xy)).clamp(lc.window_min, lc.window_max),
-            (lc.sigmas * libm::sqrt(cov[(2, 2)])).clamp(lc.angle_min, lc.angle_max),
+            lc.sigmas * libm::sqrt(var_xy),
+            lc.sigmas * libm::sqrt(cov[(2, 2)]),
         )
     }
 

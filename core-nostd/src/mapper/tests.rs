@@ -825,7 +825,7 @@ fn a_loop_beyond_the_window_is_found_by_the_far_search_confirmed_and_closes_the_
         assert!(s.far_searches > 0, "{s:?}");
         assert!(s.far_confirmed >= 1, "{s:?}");
         // The far match and at least one edge per supporting keyframe.
-        assert!(s.loop_closures as usize > far::SUPPORT, "{s:?}");
+        assert!(s.loop_closures as usize > far::accept::SUPPORT, "{s:?}");
         let lap = r.truth.len() / 2;
         let e0 = r.truth[0].between(&r.truth[lap]);
         let e = r.final_poses[0].between(&r.final_poses[lap]);

@@ -24,32 +24,36 @@
 //! each against a different way of being wrong:
 //! 1. *Unique in its submap*: no pose distinct from it (1 m, 0.3 rad) scores
 //!    [`AMBIGUITY`] of its score (a corridor or a symmetric room fails).
-//! 2. *Consistent with the map's free space*: at most [`MAX_CONFLICT`] of its points land where
-//!    the submap saw only free space (a look-alike place puts walls where the map sees
-//!    through).
+//! 2. *Consistent with the map's free space*: at most `accept::MAX_CONFLICT` of its points
+//!    land where the submap saw only free space (a look-alike place puts walls where the map
+//!    sees through).
 //! 3. *Unique among the submaps*: every candidate submap is searched again for the same
 //!    keyframe, with the threshold raised to [`AMBIGUITY`] of its score; a match at a distinct
 //!    place in the world drops it (a repeated office in another submap).
 //! 4. *Confirmed by the following keyframes*: each is matched, by the windowed search seeded
-//!    where the hypothesis and the front-end motion since put it, in up to [`VERIFY_SUBMAPS`]
-//!    submaps around that place; a match there supports it (the pair is consistent around the
-//!    cycle, as in pairwise consistency maximisation). [`SUPPORT`] supporting keyframes spread
-//!    over a submap length of travel and two submaps confirm it; [`REFUTE`] tested keyframes
-//!    without support, or [`VERIFY_SUBMAP_LENGTHS`] submap lengths of travel, drop it.
+//!    where the hypothesis and the front-end motion since put it, in up to
+//!    `accept::VERIFY_SUBMAPS` submaps around that place; a match there supports it (the pair
+//!    is consistent around the cycle, as in pairwise consistency maximisation).
+//!    `accept::SUPPORT` supporting keyframes spread over a submap length of travel and two
+//!    submaps confirm it; `accept::REFUTE` tested keyframes without support, or
+//!    `accept::VERIFY_SUBMAP_LENGTHS` submap lengths of travel, drop it.
+//!
+//! Tests 1, 2 and 4 and the acceptance are in module `accept`; this module plans and runs the
+//! searches, the sweep of test 3 included.
 //!
 //! A confirmed hypothesis' matches join the graph as loop edges without the max-mixture null
 //! hypothesis: their residual at the drifted estimate is large by construction, and the null
 //! component would switch a true correction off.
 
-use super::loops::{submap_and_pyramid, MatchSource};
+pub(in crate::mapper) mod accept;
+
+use super::loops::submap_and_pyramid;
 use super::Mapper;
 use crate::frontend::far_csm::{FarCsmConfig, FarMatch, FarSearch, FarStep, FAR_POINTS};
-use crate::frontend::lidar::{MotionNoise, Travel};
+use crate::frontend::lidar::Travel;
 use crate::frontend::scan::ScanPoint;
-use crate::frontend::Submap;
 use crate::geom::{Info3, Se2};
-use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
-use crate::storage::NodeId;
+use accept::SUPPORT_EDGES;
 
 /// Submaps searched for one keyframe before the next keyframe takes over.
 pub const PER_KEYFRAME: usize = 8;
@@ -65,31 +69,6 @@ const AMBIGUITY: f32 = 0.9;
 const DISTINCT_XY: f64 = 1.0;
 /// ... or radians.
 const DISTINCT_THETA: f64 = 0.3;
-/// Largest share of a match's points that may land where the map saw only free space (people,
-/// doors and moved furniture cause a few).
-const MAX_CONFLICT: f32 = 0.03;
-/// Log-odds at or below which a cell counts as seen free (about three net free observations).
-const FREE: i8 = -12;
-/// Submaps a following keyframe is matched in to test a hypothesis.
-pub const VERIFY_SUBMAPS: usize = 2;
-/// Supporting keyframes that confirm a hypothesis ...
-pub const SUPPORT: usize = 3;
-/// ... spread over at least this many submap lengths of travel after the matched keyframe, so
-/// that a structure repeated within a submap's extent cannot confirm itself ...
-pub const SUPPORT_SUBMAPS: f64 = 1.0;
-/// ... and in at least this many distinct submaps.
-pub const SUPPORT_DISTINCT: usize = 2;
-/// Most supporting matches kept as edges.
-const SUPPORT_EDGES: usize = 8;
-/// Tested keyframes without support that drop a hypothesis.
-pub const REFUTE: u8 = 3;
-/// Travel after the matched keyframe within which a hypothesis must be confirmed, in submap
-/// lengths.
-pub const VERIFY_SUBMAP_LENGTHS: f64 = 3.0;
-/// Allowed disagreement of a supporting match per metre of front-end motion and of graph
-/// distance between the submaps (the drift over that distance).
-const AGREE_PER_METRE: f64 = 0.02;
-
 /// A refined match of a keyframe in a submap.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct FarMatchEdge {
@@ -227,12 +206,7 @@ impl Mapper<'_> {
     /// windowed search covers.
     fn far_window(&self, m: &super::SubmapMeta) -> (f64, f64, bool) {
         let lc = &self.cfg.loops;
-        let since = self.st.far.travel.since(&m.anchor_travel);
-        let cov = self.cfg.noise.over(&since);
-        let lever = lc.window_lever * libm::fabs(since.path);
-        let var_xy = cov[(0, 0)].max(cov[(1, 1)]) + cov[(2, 2)] * lever * lever;
-        let radius = lc.sigmas * libm::sqrt(var_xy);
-        let angle = lc.sigmas * libm::sqrt(cov[(2, 2)]);
+        let (radius, angle) = self.uncertainty(&self.st.far.travel.since(&m.anchor_travel));
         let due = radius > lc.window_max || angle > lc.angle_max;
         (radius.max(lc.window_max), angle.max(lc.angle_max), due)
     }
@@ -363,111 +337,9 @@ impl Mapper<'_> {
             return true;
         }
         if let Some(m) = found {
-            debug!(
-                "far match of keyframe {} in submap {}: score {} runner-up {} at {} {} {}",
-                self.st.far.serial, anchor, m.score, m.runner_up, m.pose.x, m.pose.y, m.pose.theta
-            );
+            self.propose(slot as usize, anchor, &m);
         }
-        // An ambiguous place (a corridor, a repeated room) is no evidence of where the robot
-        // is, however well it fits.
-        let Some(m) = found.filter(|m| m.runner_up < AMBIGUITY * m.score) else {
-            return true;
-        };
-        let serial = self.st.far.serial;
-        let Some((z, info)) = self.match_in_submap(
-            slot as usize,
-            MatchSource::Far,
-            &m.pose,
-            m.cell,
-            m.angular_step,
-        ) else {
-            return true;
-        };
-        let (inside, conflicting) = self.free_space_conflicts(slot as usize, MatchSource::Far, &z);
-        debug!(
-            "far conflicts of keyframe {} in submap {}: {} of {}",
-            serial, anchor, conflicting, inside
-        );
-        if !consistent_with_free_space(inside, conflicting) {
-            return true;
-        }
-        let Some(meta) = self.node_of(serial).and_then(|i| self.meta.get(i)) else {
-            return true;
-        };
-        self.st.stats.far_hypotheses += 1;
-        debug!(
-            "far hypothesis: keyframe {} in submap {} at {} {} {}",
-            serial, anchor, z.x, z.y, z.theta
-        );
-        let travel = meta.travel;
-        let Some(ga) = self.keyframe_pose(anchor) else {
-            return true;
-        };
-        self.st.far.hypothesis = Some(Hypothesis {
-            first: FarMatchEdge {
-                serial,
-                anchor,
-                z,
-                info,
-            },
-            travel,
-            support: heapless::Vec::new(),
-            supporting: 0,
-            unsupported: 0,
-            world: ga.compose(&z),
-            score: m.score,
-            swept: false,
-            last_band: false,
-        });
-        // Sweep every candidate again, from the nearest, for a distinct place that fits as
-        // well.
-        let far = &mut self.st.far;
-        far.queue.clear();
-        far.reached = -1.0;
-        far.planned = true;
         true
-    }
-
-    /// The kept scan's points at `pose` in submap `slot` that fall on cells the submap has
-    /// observed, and those of them where it saw only free space all around (an obstacle where
-    /// the map says there is none).
-    fn free_space_conflicts(&self, slot: usize, source: MatchSource, pose: &Se2) -> (u32, u32) {
-        let per = self.cells_per_submap;
-        let Some(cells) = self.cells.get(slot * per..(slot + 1) * per) else {
-            return (0, 0);
-        };
-        let Ok(submap) = Submap::from_cells(Se2::IDENTITY, self.cfg.grid, cells) else {
-            return (0, 0);
-        };
-        let (c, s) = (libm::cos(pose.theta) as f32, libm::sin(pose.theta) as f32);
-        let (tx, ty) = (pose.x as f32, pose.y as f32);
-        let (mut inside, mut conflicting) = (0u32, 0u32);
-        let points: &[ScanPoint] = match source {
-            MatchSource::Scan => self.scan.as_slice(),
-            MatchSource::Far => self.st.far.scan(),
-        };
-        for q in points {
-            let p = [tx + c * q.p[0] - s * q.p[1], ty + s * q.p[0] + c * q.p[1]];
-            let g = submap.local_to_cell(p);
-            let (ix, iy) = (libm::floorf(g[0]) as i32, libm::floorf(g[1]) as i32);
-            let mut seen = false;
-            let mut most = i8::MIN;
-            for dy in -1..=1 {
-                for dx in -1..=1 {
-                    if let Some(v) = submap.cell(ix + dx, iy + dy) {
-                        seen |= v != 0;
-                        most = most.max(v);
-                    }
-                }
-            }
-            if seen {
-                inside += 1;
-                if most <= FREE {
-                    conflicting += 1;
-                }
-            }
-        }
-        (inside, conflicting)
     }
 
     /// A search of the sweep finished in the submap anchored at `anchor`: a match above the
@@ -568,192 +440,4 @@ impl Mapper<'_> {
         }
         None
     }
-
-    /// Tests the pending hypothesis with keyframe `serial`: matched where the hypothesis puts
-    /// it, in the submaps around that place.
-    fn verify_far(&mut self, serial: u32) {
-        let Some(h) = self.st.far.hypothesis.clone() else {
-            return;
-        };
-        let lc = self.cfg.loops;
-        let travel = self.st.frontend.travel();
-        let refute = |m: &mut Self| m.drop_hypothesis();
-        let (Some(fh), Some(fs), Some(gh)) = (
-            self.node_of(h.first.serial)
-                .and_then(|i| self.meta.get(i))
-                .map(|m| m.frontend),
-            self.node_of(serial)
-                .and_then(|i| self.meta.get(i))
-                .map(|m| m.frontend),
-            self.keyframe_pose(h.first.anchor),
-        ) else {
-            refute(self);
-            return;
-        };
-        let side = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64;
-        let travelled = travel.path - h.travel.path;
-        if travelled > VERIFY_SUBMAP_LENGTHS * side {
-            refute(self);
-            return;
-        }
-        let odo = fh.between(&fs);
-        let moved = libm::hypot(odo.x, odo.y);
-        // Where the hypothesis puts this keyframe in the world.
-        let predicted = gh.compose(&h.first.z).compose(&odo);
-        let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
-        let mut near = heapless::Vec::<(f64, usize, u32), VERIFY_SUBMAPS>::new();
-        for (slot, m) in self.submaps.iter().enumerate() {
-            if !m.in_use || m.active || m.anchor_serial + lc.min_keyframe_gap > serial {
-                continue;
-            }
-            let Some(ga) = self.keyframe_pose(m.anchor_serial) else {
-                continue;
-            };
-            let local = ga.between(&predicted);
-            if libm::fabs(local.x) > half || libm::fabs(local.y) > half {
-                continue;
-            }
-            let d = libm::hypot(local.x, local.y);
-            if near.is_full() {
-                if let Some(far) = (0..near.len()).max_by(|&a, &b| near[a].0.total_cmp(&near[b].0))
-                {
-                    if near[far].0 > d {
-                        near[far] = (d, slot, m.anchor_serial);
-                    }
-                }
-            } else {
-                let _ = near.push((d, slot, m.anchor_serial));
-            }
-        }
-        if near.is_empty() {
-            return;
-        }
-        let mut supported = false;
-        for &(_, slot, anchor) in near.iter() {
-            let Some(ga) = self.keyframe_pose(anchor) else {
-                continue;
-            };
-            let seed = ga.between(&predicted);
-            let Some((z, info)) =
-                self.match_in_submap(slot, MatchSource::Scan, &seed, lc.window_min, lc.angle_min)
-            else {
-                continue;
-            };
-            let (inside, conflicting) = self.free_space_conflicts(slot, MatchSource::Scan, &z);
-            if !consistent_with_free_space(inside, conflicting) {
-                continue;
-            }
-            let e = seed.between(&z);
-            let span = moved + libm::hypot(ga.x - gh.x, ga.y - gh.y);
-            if libm::hypot(e.x, e.y) <= lc.agree_xy + AGREE_PER_METRE * span
-                && libm::fabs(e.theta) <= lc.agree_theta
-            {
-                if let Some(hyp) = self.st.far.hypothesis.as_mut() {
-                    let edge = FarMatchEdge {
-                        serial,
-                        anchor,
-                        z,
-                        info,
-                    };
-                    keep_support(&mut hyp.support, &hyp.first, edge);
-                }
-                supported = true;
-            }
-        }
-        let Some(hyp) = self.st.far.hypothesis.as_mut() else {
-            return;
-        };
-        if supported {
-            hyp.supporting += 1;
-        } else {
-            hyp.unsupported += 1;
-        }
-        debug!(
-            "far hypothesis tested by keyframe {}: supported {} ({} / {})",
-            serial, supported, hyp.supporting, hyp.unsupported
-        );
-        if hyp.unsupported >= REFUTE {
-            refute(self);
-        } else if hyp.swept
-            && hyp.supporting >= SUPPORT
-            && travelled >= SUPPORT_SUBMAPS * side
-            && distinct_anchors(&hyp.first, &hyp.support) >= SUPPORT_DISTINCT
-        {
-            self.accept_far();
-        }
-    }
-
-    /// Adds the confirmed hypothesis' matches as loop edges.
-    fn accept_far(&mut self) {
-        let Some(h) = self.st.far.hypothesis.take() else {
-            return;
-        };
-        let mut added = 0u32;
-        for e in core::iter::once(&h.first).chain(h.support.iter()) {
-            let (Some(a), Some(k)) = (self.node_of(e.anchor), self.node_of(e.serial)) else {
-                continue;
-            };
-            // Plain least squares: the group is the evidence, and the null component of a
-            // max-mixture would reject a large correction at the drifted estimate.
-            let mut edge = PoseEdge::new(
-                NodeId(a as u32),
-                NodeId(k as u32),
-                e.z,
-                e.info,
-                EdgeKind::Loop,
-            );
-            edge.robust = RobustKernel::None;
-            if self.graph.add_edge(edge).is_ok() {
-                debug!("far loop edge: {} -> {}", e.anchor, e.serial);
-                added += 1;
-            }
-        }
-        // The next search starts again from the nearest submaps.
-        self.st.far.reached = -1.0;
-        if added > 0 {
-            self.st.stats.far_confirmed += 1;
-            self.st.stats.loop_closures += added;
-            self.st.backend.loop_added();
-            self.st.loops.at_loop = self.st.frontend.travel();
-        }
-    }
-}
-
-/// Whether a match whose points fall on `inside` observed cells, `conflicting` of them where
-/// the map saw only free space, agrees with the map's free space: a revisit sees the walls
-/// the map has; a place that merely looks alike puts some of its walls where the map saw
-/// through.
-fn consistent_with_free_space(inside: u32, conflicting: u32) -> bool {
-    inside > 0 && (conflicting as f32) <= MAX_CONFLICT * inside as f32
-}
-
-/// Adds `edge` to a hypothesis' `support`; when full, a match in a submap not yet among them
-/// replaces one whose submap is represented twice, so the distinct submaps are kept.
-fn keep_support(
-    support: &mut heapless::Vec<FarMatchEdge, SUPPORT_EDGES>,
-    first: &FarMatchEdge,
-    edge: FarMatchEdge,
-) {
-    let Err(edge) = support.push(edge) else {
-        return;
-    };
-    if first.anchor == edge.anchor || support.iter().any(|e| e.anchor == edge.anchor) {
-        return;
-    }
-    let twice = (0..support.len()).rev().find(|&i| {
-        let a = support[i].anchor;
-        a == first.anchor || support.iter().filter(|e| e.anchor == a).count() > 1
-    });
-    if let Some(i) = twice {
-        support[i] = edge;
-    }
-}
-
-/// Distinct submaps among a hypothesis' matches.
-fn distinct_anchors(first: &FarMatchEdge, support: &[FarMatchEdge]) -> usize {
-    let all = || core::iter::once(first).chain(support.iter());
-    all()
-        .enumerate()
-        .filter(|&(i, e)| all().take(i).all(|f| f.anchor != e.anchor))
-        .count()
 }
