@@ -231,19 +231,9 @@ impl Search<'_, '_> {
             self.best_at = Some((angle, dx, dy));
             return;
         }
-        let h = 1i32 << (k - 1);
-        let mut children = [(0u32, 0i32, 0i32); 4];
-        let mut n = 0;
-        for (ox, oy) in [(0, 0), (h, 0), (0, h), (h, h)] {
-            let (cx, cy) = (dx + ox, dy + oy);
-            if cx > self.window || cy > self.window {
-                continue;
-            }
-            children[n] = (self.score(cells, k - 1, cx, cy), cx, cy);
-            n += 1;
-        }
-        let children = &mut children[..n];
-        children.sort_unstable_by_key(|c| core::cmp::Reverse(c.0));
+        let window = self.window;
+        let (children, n) = children(window, k, dx, dy, |k, x, y| self.score(cells, k, x, y));
+        let children = &children[..n];
         for &(b, cx, cy) in children.iter() {
             self.descend(cells, angle, k - 1, cx, cy, b);
         }
@@ -359,6 +349,32 @@ pub fn search(
         score: (search.best as f64 / (255.0 * count as f64)) as f32,
         evaluated: search.evaluated,
     })
+}
+
+/// The children of the window cell `(dx, dy)` at pyramid level `k` (its four quarters at level
+/// `k - 1`) that start inside the search window `window`, scored by `score(level, dx, dy)`,
+/// best first: the branching step of the branch and bound here and in
+/// [`far_csm`](crate::frontend::far_csm).
+pub(crate) fn children(
+    window: i32,
+    k: usize,
+    dx: i32,
+    dy: i32,
+    mut score: impl FnMut(usize, i32, i32) -> u32,
+) -> ([(u32, i32, i32); 4], usize) {
+    let h = 1i32 << (k - 1);
+    let mut children = [(0u32, 0i32, 0i32); 4];
+    let mut n = 0;
+    for (ox, oy) in [(0, 0), (h, 0), (0, h), (h, h)] {
+        let (cx, cy) = (dx + ox, dy + oy);
+        if cx > window || cy > window {
+            continue;
+        }
+        children[n] = (score(k - 1, cx, cy), cx, cy);
+        n += 1;
+    }
+    children[..n].sort_unstable_by_key(|c| core::cmp::Reverse(c.0));
+    (children, n)
 }
 
 #[cfg(test)]

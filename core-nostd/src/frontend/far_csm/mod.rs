@@ -28,7 +28,7 @@
 
 use core::f64::consts::PI;
 
-use crate::frontend::csm::{CsmError, Pyramid};
+use crate::frontend::csm::{children, CsmError, Pyramid};
 use crate::frontend::grid::Submap;
 use crate::frontend::scan::ScanPoint;
 use crate::geom::Se2;
@@ -61,16 +61,22 @@ pub struct FarCsmConfig {
     pub distinct_theta: f64,
 }
 
+impl FarCsmConfig {
+    /// Leaves at level 2, threshold 0.6, rotation step from at most 12 m, every heading,
+    /// distinct beyond 1 m or 0.3 rad.
+    pub const DEFAULT: FarCsmConfig = FarCsmConfig {
+        base_level: 2,
+        min_score: 0.6,
+        step_range: 12.0,
+        window_theta: PI,
+        distinct_xy: 1.0,
+        distinct_theta: 0.3,
+    };
+}
+
 impl Default for FarCsmConfig {
     fn default() -> Self {
-        FarCsmConfig {
-            base_level: 2,
-            min_score: 0.6,
-            step_range: 12.0,
-            window_theta: PI,
-            distinct_xy: 1.0,
-            distinct_theta: 0.3,
-        }
+        FarCsmConfig::DEFAULT
     }
 }
 
@@ -174,19 +180,9 @@ impl Bnb<'_, '_> {
             }
             return;
         }
-        let h = 1i32 << (k - 1);
-        let mut children = [(0u32, 0i32, 0i32); 4];
-        let mut n = 0;
-        for (ox, oy) in [(0, 0), (h, 0), (0, h), (h, h)] {
-            let (cx, cy) = (dx + ox, dy + oy);
-            if cx > self.window || cy > self.window {
-                continue;
-            }
-            children[n] = (self.score(cells, k - 1, cx, cy), cx, cy);
-            n += 1;
-        }
-        let children = &mut children[..n];
-        children.sort_unstable_by_key(|c| core::cmp::Reverse(c.0));
+        let window = self.window;
+        let (children, n) = children(window, k, dx, dy, |k, x, y| self.score(cells, k, x, y));
+        let children = &children[..n];
         for &(cb, cx, cy) in children.iter() {
             self.descend(cells, angle, k - 1, cx, cy, cb);
         }
@@ -210,14 +206,7 @@ impl FarSearch {
             points: heapless::Vec::new(),
             seed: Se2::IDENTITY,
             window_xy: 0.0,
-            config: FarCsmConfig {
-                base_level: 2,
-                min_score: 0.6,
-                step_range: 12.0,
-                window_theta: PI,
-                distinct_xy: 1.0,
-                distinct_theta: 0.3,
-            },
+            config: FarCsmConfig::DEFAULT,
             started: false,
             next_angle: 0,
             next_top: 0,
