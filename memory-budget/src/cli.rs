@@ -102,6 +102,24 @@ pub fn run(args: &BudgetArgs, out: &mut dyn Write) -> Result<()> {
                 rep.allocator_symbols.join(", ")
             );
         }
+        if let Some(log) = &args.run_log {
+            let text = std::fs::read_to_string(log)
+                .with_context(|| format!("reading run log {}", log.display()))?;
+            let used = elf::stack_high_water(&text)
+                .with_context(|| format!("{} has no stack_used_bytes= line", log.display()))?;
+            writeln!(
+                out,
+                "  stack high-water {} B (budget {} B)",
+                used, args.stack_budget
+            )?;
+            if used > args.stack_budget {
+                bail!(
+                    "stack high-water {} B exceeds the budget of {} B",
+                    used,
+                    args.stack_budget
+                );
+            }
+        }
         if let Some(ir) = &args.stack_ir {
             let sb = stack::analyze(path, ir, stack::ROOT)?;
             writeln!(
@@ -122,24 +140,6 @@ pub fn run(args: &BudgetArgs, out: &mut dyn Write) -> Result<()> {
                 bail!(
                     "static stack bound {} B exceeds the budget of {} B",
                     sb.bound,
-                    args.stack_budget
-                );
-            }
-        }
-        if let Some(log) = &args.run_log {
-            let text = std::fs::read_to_string(log)
-                .with_context(|| format!("reading run log {}", log.display()))?;
-            let used = elf::stack_high_water(&text)
-                .with_context(|| format!("{} has no stack_used_bytes= line", log.display()))?;
-            writeln!(
-                out,
-                "  stack high-water {} B (budget {} B)",
-                used, args.stack_budget
-            )?;
-            if used > args.stack_budget {
-                bail!(
-                    "stack high-water {} B exceeds the budget of {} B",
-                    used,
                     args.stack_budget
                 );
             }

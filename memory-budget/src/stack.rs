@@ -7,7 +7,10 @@
 //!   arguments);
 //! * its disassembly by `llvm-objdump` (rustup's `llvm-tools`), for the direct edges: every
 //!   branch to another function is an edge, call or tail call (a tail call is counted as if the
-//!   caller's frame were still live, which over-approximates);
+//!   caller's frame were still live, which over-approximates), and a call to the function's own
+//!   start is recursion; functions that LLVM gives no `.stack_sizes` entry (hand-written
+//!   assembly, and a few it skips) weigh the sum of every instruction that moves the stack
+//!   pointer down;
 //! * the post-LTO LLVM IR of the same build (`--emit=llvm-ir`), for the indirect calls (trait
 //!   objects, function pointers): an indirect call may reach every *address-taken* function
 //!   (one referenced anywhere other than as the callee of a direct call, e.g. in a vtable or a
@@ -245,7 +248,19 @@ fn scan_disassembly(text: &str, functions: &mut [Function]) -> Result<()> {
                 .split_whitespace()
                 .next()
                 .and_then(|t| u64::from_str_radix(t.trim_start_matches("0x"), 16).ok());
+            // A branch with link (or after `mov lr, pc`) is a call even inside the function:
+            // to its own start it is recursion.
+            let link = is(mnemonic, "bl")
+                || is(mnemonic, "blx")
+                || k.checked_sub(1)
+                    .and_then(|j| lines.get(j))
+                    .is_some_and(|(_, m, o)| *m == "mov" && *o == "lr, pc");
             match target {
+                Some(t) if link && t == f.start => updates.push((fi, Update::Edge(fi))),
+                Some(t) if link && t > f.start && t < f.end => updates.push((
+                    fi,
+                    Update::Refuse(format!("{addr:x}: call into its own body at {t:x}")),
+                )),
                 Some(t) if t >= f.start && t < f.end => {}
                 Some(t) => match index_of(t) {
                     Some(g) => updates.push((fi, Update::Edge(g))),
@@ -979,6 +994,7 @@ mod tests {
              \x20    100:      \tpush\t{r4, lr}\n\
              \x20    104:      \tbl\t0x120 <g> @ imm = #0x10\n\
              \x20    108:      \tbeq\t0x104 <f+0x4> @ imm = #-0xc\n\
+             \x20    10a:      \tbl\t0x100 <f> @ imm = #-0xc\n\
              \x20    10c:      \tblx\tr3\n\
              \x20    110:      \tsub\tsp, sp, r2\n\
              \x20    114:      \tpop\t{r4, pc}\n\
@@ -986,7 +1002,7 @@ mod tests {
              \x20    120:      \tmov\tpc, r1\n\
              \x20    124:      \tbx\tlr\n";
         scan_disassembly(text, &mut fs).unwrap();
-        assert_eq!(fs[0].direct, BTreeSet::from([1]));
+        assert_eq!(fs[0].direct, BTreeSet::from([0, 1]), "self-call and call");
         assert_eq!(fs[0].indirect_sites, 1);
         assert_eq!(fs[0].pushed, u64::MAX, "a push of a register amount");
         assert_eq!(fs[0].refused.len(), 1, "{:?}", fs[0].refused);
