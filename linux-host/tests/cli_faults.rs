@@ -73,9 +73,7 @@ fn cloi_with_read_only(dir: &Path, args: &[&str]) -> Option<Output> {
         .args(args)
         .output()
         .ok()?;
-    stderr(&out)
-        .starts_with("read-only-mounted")
-        .then_some(out)
+    stderr(&out).starts_with("read-only-mounted").then_some(out)
 }
 
 fn map_args(out: &Path) -> Vec<String> {
@@ -161,7 +159,10 @@ fn convert_on_a_full_disk_fails_without_output_or_temporary_file() {
         // 2 blocks = 1 KiB; every output of 200 scans is larger.
         let run = cloi_with_file_limit(2, &args);
         let err = stderr(&run);
-        assert!(!run.status.success(), "{name}: a full disk must fail: {err}");
+        assert!(
+            !run.status.success(),
+            "{name}: a full disk must fail: {err}"
+        );
         assert!(err.contains("File too large"), "{name}: {err}");
         assert!(
             err.contains(target.to_str().expect("utf-8")),
