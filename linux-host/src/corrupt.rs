@@ -12,6 +12,7 @@ use rand::{RngExt, SeedableRng};
 use rand_pcg::Pcg64;
 
 use crate::graph_io::{self, FileEdge, GraphFile, GraphFormat};
+use crate::io::atomic;
 
 /// Options of `cloi corrupt`.
 #[derive(Debug, Clone, clap::Args)]
@@ -84,7 +85,7 @@ pub fn run(args: &CorruptArgs, out: &mut dyn Write) -> Result<()> {
     let mut graph = graph_io::read_graph(&args.input, args.format)?;
     add_false_loops(&mut graph, args.outliers, args.seed, args.span)?;
     let poses = graph.poses.clone();
-    graph_io::write_atomically(&args.out, &graph_io::write_g2o(&graph, &poses))?;
+    atomic::write_file(&args.out, graph_io::write_g2o(&graph, &poses).as_bytes())?;
     writeln!(
         out,
         "{}: {} nodes, {} edges ({} false loops, seed {})",

@@ -14,6 +14,7 @@ use cloi_core::solver::{
 use serde::Serialize;
 
 use crate::graph_io::{self, aligned_rmse, GraphFile, GraphFormat};
+use crate::io::atomic;
 
 /// Initial guess.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize)]
@@ -417,11 +418,11 @@ pub fn run(args: &OptimizeArgs, out: &mut dyn Write) -> Result<()> {
     let res = optimize_file(args)?;
     let r = &res.report;
     if let Some(path) = &args.out {
-        graph_io::write_atomically(path, &graph_io::write_g2o(&res.graph, &res.poses))?;
+        atomic::write_file(path, graph_io::write_g2o(&res.graph, &res.poses).as_bytes())?;
     }
     if let Some(path) = &args.report {
         let json = serde_json::to_string_pretty(r)?;
-        graph_io::write_atomically(path, &json)?;
+        atomic::write_file(path, json.as_bytes())?;
     }
     writeln!(
         out,

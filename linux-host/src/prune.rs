@@ -16,6 +16,7 @@ use cloi_eval::arps::arps;
 use serde::Serialize;
 
 use crate::graph_io::{self, FileEdge, GraphFile, GraphFormat};
+use crate::io::atomic;
 use crate::optimize::HostWorkspace;
 
 /// The information term of the node weight.
@@ -384,7 +385,7 @@ pub fn run(args: &PruneArgs, out: &mut dyn Write) -> Result<()> {
         )?;
         let text = serde_json::to_string_pretty(&report)?;
         if let Some(path) = &args.report {
-            graph_io::write_atomically(path, &text)?;
+            atomic::write_file(path, text.as_bytes())?;
         }
         writeln!(out, "{text}")?;
         return Ok(());
@@ -392,13 +393,11 @@ pub fn run(args: &PruneArgs, out: &mut dyn Write) -> Result<()> {
     let pruned = prune_file(args)?;
     let text = serde_json::to_string_pretty(&pruned.report)?;
     if let Some(path) = &args.out {
-        graph_io::write_atomically(
-            path,
-            &graph_io::write_g2o(&pruned_file(&pruned), &pruned.poses),
-        )?;
+        let g2o = graph_io::write_g2o(&pruned_file(&pruned), &pruned.poses);
+        atomic::write_file(path, g2o.as_bytes())?;
     }
     if let Some(path) = &args.report {
-        graph_io::write_atomically(path, &text)?;
+        atomic::write_file(path, text.as_bytes())?;
     }
     writeln!(out, "{text}")?;
     Ok(())

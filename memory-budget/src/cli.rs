@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 
-use crate::{elf, footprint};
+use crate::{elf, footprint, stack};
 
 /// Options of the budget command.
 #[derive(Debug, Clone, Default, clap::Args)]
@@ -16,7 +16,12 @@ pub struct BudgetArgs {
     /// A firmware run log holding a `stack_used_bytes=N` line, for the stack high-water mark.
     #[arg(long, requires = "elf")]
     pub run_log: Option<PathBuf>,
-    /// Fail if the stack high-water mark exceeds this many bytes.
+    /// The post-LTO LLVM IR of the same firmware build (`--emit=llvm-ir`): compute the static
+    /// worst-case stack (call graph and frame sizes) and fail if it exceeds the stack budget or
+    /// cannot be computed. The ELF must be built with `-Z emit-stack-sizes`.
+    #[arg(long, requires = "elf")]
+    pub stack_ir: Option<PathBuf>,
+    /// Fail if the stack high-water mark or the static stack bound exceeds this many bytes.
     #[arg(long, default_value_t = 64 * 1024)]
     pub stack_budget: u64,
 }
@@ -111,6 +116,30 @@ pub fn run(args: &BudgetArgs, out: &mut dyn Write) -> Result<()> {
                 bail!(
                     "stack high-water {} B exceeds the budget of {} B",
                     used,
+                    args.stack_budget
+                );
+            }
+        }
+        if let Some(ir) = &args.stack_ir {
+            let sb = stack::analyze(path, ir, stack::ROOT)?;
+            writeln!(
+                out,
+                "  static stack bound {} B from {} ({} functions reachable, {} indirect call \
+                 sites -> {} edges, no recursion; budget {} B); deepest path:",
+                sb.bound,
+                stack::ROOT,
+                sb.reachable,
+                sb.indirect_sites,
+                sb.indirect_edges,
+                args.stack_budget
+            )?;
+            for (name, frame) in &sb.path {
+                writeln!(out, "    {frame:>6} B  {name}")?;
+            }
+            if sb.bound > args.stack_budget {
+                bail!(
+                    "static stack bound {} B exceeds the budget of {} B",
+                    sb.bound,
                     args.stack_budget
                 );
             }

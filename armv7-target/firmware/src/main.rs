@@ -39,6 +39,5 @@ fn main() -> ! {
 
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo<'_>) -> ! {
-    println!("status=panic message={}", info);
-    process::exit(101)
+    cloi_firmware::panic_exit(info)
 }

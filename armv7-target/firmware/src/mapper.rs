@@ -36,7 +36,9 @@ use cloi_core::mapper::{
     BackendStep, Feeder, Mapper, MapperConfig, Probe, Pushed, ScanInput, ScanSlots, Section,
 };
 use cloi_core::profile::HomeResources;
-use cloi_core::sensor::log::{LogReader, LogRecord, MAX_BEAMS, MIN_READER_BUFFER};
+use cloi_core::sensor::log::{
+    LogError, LogReader, LogRecord, ReadError, MAX_BEAMS, MIN_READER_BUFFER,
+};
 use semihosting::fs::File;
 use semihosting::println;
 
@@ -318,7 +320,10 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         return Err("mapper started twice");
     };
     let config = home_config();
-    println!("config={config:?}");
+    // The name of the preset, not its `Debug`: the QEMU test compares that preset with
+    // `cloi map --profile home` on the host, and `Debug` formatting nests `dyn Debug` calls,
+    // which the static stack bound would have to refuse as recursion.
+    println!("config=MapperConfig::home");
     println!("backend_iterations_per_scan={BACKEND_ITERATIONS_PER_SCAN}");
     let (mapper, setup) = measure(move || resources.mapper(config));
     let Ok(mapper) = mapper else {
@@ -358,7 +363,13 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
             // The end of the log releases the scans still waiting for odometry.
             Ok(None) => (finish_input(&mut state), true),
             Err(e) => {
-                println!("mapper_error=\"{e}\"");
+                match e {
+                    ReadError::Log { error, offset } => println!(
+                        "mapper_error=\"{}\" offset={offset}",
+                        log_error_name(&error)
+                    ),
+                    ReadError::Source(_) => println!("mapper_error=\"SYS_READ failed\""),
+                }
                 return Err("the log is damaged or unreadable");
             }
         };
@@ -517,4 +528,21 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         println!("scans_not_in_percentiles={}", scans - MAX_SCANS);
     }
     Ok(())
+}
+
+/// The variant of a log error, printed without its fields: `LogError`'s `Display` nests
+/// formatting calls (`write!`), which the static stack bound would have to refuse as recursion.
+fn log_error_name(e: &LogError) -> &'static str {
+    match e {
+        LogError::BadMagic => "bad magic",
+        LogError::UnsupportedVersion { .. } => "unsupported version",
+        LogError::BadHeaderLength { .. } => "bad header length",
+        LogError::Truncated { .. } => "truncated",
+        LogError::RecordTooLarge { .. } => "record too large",
+        LogError::TooManyBeams { .. } => "too many beams",
+        LogError::BadLength { .. } => "bad record length",
+        LogError::BadChecksum { .. } => "bad checksum",
+        LogError::CountMismatch { .. } => "record count mismatch",
+        LogError::BufferTooSmall { .. } => "buffer too small",
+    }
 }

@@ -33,12 +33,19 @@ impl AtomicFile {
     /// The folder cannot be created or is not writable.
     pub fn create(path: &Path) -> Result<Self> {
         let dir = parent_dir(path);
-        fs::create_dir_all(dir).with_context(|| format!("creating folder {}", dir.display()))?;
+        fs::create_dir_all(dir)
+            .with_context(|| format!("cannot write {}: creating its folder", path.display()))?;
         let temp = tempfile::Builder::new()
             .prefix(".cloi-")
             .suffix(".tmp")
             .tempfile_in(dir)
-            .with_context(|| format!("creating a temporary file in {}", dir.display()))?;
+            .with_context(|| {
+                format!(
+                    "cannot write {}: creating a temporary file in {}",
+                    path.display(),
+                    dir.display()
+                )
+            })?;
         Ok(Self {
             target: path.to_owned(),
             temp: BufWriter::with_capacity(1 << 16, temp),

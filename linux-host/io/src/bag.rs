@@ -101,11 +101,12 @@ impl BagWriter<BufWriter<NamedTempFile>> {
     pub fn finish(self) -> Result<u64> {
         let messages = self.messages;
         let target = self.target.clone();
+        let name = self.name();
         let inner = self.finish_into_inner()?;
         let temp = inner
             .into_inner()
             .map_err(|e| e.into_error())
-            .context("flushing the bag")?;
+            .with_context(|| format!("writing {name}"))?;
         match target {
             Some(target) => AtomicFile::persist(temp, &target)?,
             None => bail!("bag writer has no target path"),
@@ -130,6 +131,13 @@ impl<W: Write + Seek> BagWriter<W> {
             target: None,
             messages: 0,
         })
+    }
+
+    /// The bag's path for messages ("the bag" without one).
+    fn name(&self) -> String {
+        self.target
+            .as_ref()
+            .map_or_else(|| "the bag".to_owned(), |p| p.display().to_string())
     }
 
     /// Messages written so far.
@@ -202,7 +210,7 @@ impl<W: Write + Seek> BagWriter<W> {
                 },
                 data,
             )
-            .with_context(|| format!("writing a message to {topic}"))?;
+            .with_context(|| format!("writing a message to {topic} in {}", self.name()))?;
         self.messages += 1;
         Ok(())
     }
@@ -212,7 +220,10 @@ impl<W: Write + Seek> BagWriter<W> {
     /// # Errors
     /// Any IO error.
     pub fn finish_into_inner(mut self) -> Result<W> {
-        self.mcap.finish().context("finishing the MCAP file")?;
+        let name = self.name();
+        self.mcap
+            .finish()
+            .with_context(|| format!("finishing the MCAP file {name}"))?;
         Ok(self.mcap.into_inner())
     }
 }

@@ -77,8 +77,9 @@ pub fn carmen_to_cloilog(
     let mut frame = vec![0u8; MAX_FRAME];
     let mut header = [0u8; HEADER_LEN];
     encode_header(None, &mut header)?;
+    let writing = || format!("writing {}", output.display());
     let w = file.writer();
-    w.write_all(&header)?;
+    w.write_all(&header).with_context(writing)?;
     report.bytes = HEADER_LEN as u64;
     let mut mount = Se2::IDENTITY;
     'records: for record in reader.by_ref() {
@@ -134,16 +135,16 @@ pub fn carmen_to_cloilog(
                 }
                 (RosOut::Tf(_), _) => continue,
             };
-            w.write_all(&frame[..n])?;
+            w.write_all(&frame[..n]).with_context(writing)?;
             report.bytes += n as u64;
         }
     }
     let count = u32::try_from(report.scans + report.odometry)
         .context("too many records for the cloilog header")?;
     encode_header(Some(count), &mut header)?;
-    w.seek(SeekFrom::Start(0))?;
-    w.write_all(&header)?;
-    w.seek(SeekFrom::End(0))?;
+    w.seek(SeekFrom::Start(0)).with_context(writing)?;
+    w.write_all(&header).with_context(writing)?;
+    w.seek(SeekFrom::End(0)).with_context(writing)?;
     file.commit()?;
     report.input = reader.stats().clone();
     Ok(report)

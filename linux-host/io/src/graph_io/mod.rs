@@ -308,17 +308,5 @@ pub fn read_graph(path: &Path, format: Option<GraphFormat>) -> Result<GraphFile>
     }
 }
 
-/// Writes a file through a temporary name and a rename, so a failure leaves no partial file.
-///
-/// # Errors
-/// The file cannot be written.
-pub fn write_atomically(path: &Path, content: &str) -> Result<()> {
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    let tmp = std::path::PathBuf::from(tmp);
-    std::fs::write(&tmp, content).with_context(|| format!("cannot write {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot rename to {}", path.display()))
-}
-
 #[cfg(test)]
 mod tests;
