@@ -450,10 +450,18 @@ impl ChunkedSolve {
                     self.begin_sum(Phase::FinalCost);
                     return None;
                 };
-                if !whole(self.refresh_cost(n, m), spent) {
+                // One test is three solves with the factor, each forward and back.
+                let per_test = 6 * (ws.key.nnz + ws.key.vars) as u64 / work::SOLVE_BLOCKS_PER_UNIT;
+                let tests = usize::try_from(left / per_test.max(1)).unwrap_or(usize::MAX);
+                let (next, admitted, tested) =
+                    gate::admit_range(nodes, edges, ws, limit, self.cursor, tests.max(1));
+                *spent = spent.saturating_add(per_test.saturating_mul(tested as u64).max(1));
+                self.cursor = next;
+                self.rejected += admitted;
+                if next < m {
                     return None;
                 }
-                if gate::admit_by_innovation(nodes, edges, ws, limit) == 0 {
+                if self.rejected == 0 {
                     self.begin_sum(Phase::FinalCost);
                 } else {
                     let cap = self.options.max_iterations;

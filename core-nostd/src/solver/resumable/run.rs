@@ -95,6 +95,9 @@ impl ChunkedSolve {
                     _ => 0,
                 };
                 if self.gated && usable && round < ADMISSION_ROUNDS {
+                    // `rejected` counts the loops this round admits until the final count.
+                    self.rejected = 0;
+                    self.cursor = 0;
                     self.phase = Phase::Admission(round);
                 } else {
                     self.begin_sum(Phase::FinalCost);
