@@ -156,51 +156,70 @@ impl BackendSchedule {
             self.pending_keyframes = 0;
         }
         self.counters.steps += 1;
-        let outcome = match &mut self.solve {
-            Some(s) => s.advance(graph, solver, budget(params)),
+        // With a finite budget, what a finished solve leaves of it goes to the next solve of
+        // the same optimization; without one, a step is one whole solve.
+        let mut left = budget(params);
+        loop {
+            let (outcome, used) = self.advance(graph, solver, params, iterations, left);
+            let Progress::Done(result) = outcome else {
+                return BackendStep::Working;
+            };
+            self.solve = None;
+            let (done, failed) = match result {
+                Ok(r) => {
+                    self.iterations_done += r.iterations;
+                    (true, false)
+                }
+                Err(f) if f.error == SolveError::MaxIterations => {
+                    self.iterations_done += f.report.iterations;
+                    (self.iterations_done >= params.max_iterations, false)
+                }
+                Err(_) => (true, true),
+            };
+            if done {
+                self.optimizing = false;
+                if failed {
+                    self.counters.failures += 1;
+                }
+                self.counters.optimizations += 1;
+                return BackendStep::Finished;
+            }
+            left = left.saturating_sub(used);
+            if params.work_budget == 0 || left == 0 || used == 0 {
+                return BackendStep::Working;
+            }
+        }
+    }
+
+    /// Advances the running solve, or starts the optimization's next one, by at most `left`
+    /// work units; returns its progress and the units used.
+    fn advance(
+        &mut self,
+        graph: &mut PoseGraph<'_>,
+        solver: &mut SolverBuffers<'_>,
+        params: &ScheduleParams,
+        iterations: u32,
+        left: u64,
+    ) -> (Progress, u64) {
+        let s = match &mut self.solve {
+            Some(s) => s,
             None => {
-                let left = params.max_iterations.saturating_sub(self.iterations_done);
+                let remaining = params.max_iterations.saturating_sub(self.iterations_done);
                 let options = SolverOptions {
                     method: Method::GaussNewton,
-                    max_iterations: iterations.max(1).min(left.max(1)),
+                    max_iterations: iterations.max(1).min(remaining.max(1)),
                     linear_init: false,
                     gate_chi2: params.gate_chi2,
                     ..SolverOptions::default()
                 };
                 match ChunkedSolve::start(graph, solver, &options) {
-                    Ok(mut s) => {
-                        let p = s.advance(graph, solver, budget(params));
-                        self.solve = Some(s);
-                        p
-                    }
-                    Err(f) => Progress::Done(Err(f)),
+                    Ok(s) => self.solve.insert(s),
+                    Err(f) => return (Progress::Done(Err(f)), 0),
                 }
             }
         };
-        let Progress::Done(result) = outcome else {
-            return BackendStep::Working;
-        };
-        self.solve = None;
-        let (done, failed) = match result {
-            Ok(r) => {
-                self.iterations_done += r.iterations;
-                (true, false)
-            }
-            Err(f) if f.error == SolveError::MaxIterations => {
-                self.iterations_done += f.report.iterations;
-                (self.iterations_done >= params.max_iterations, false)
-            }
-            Err(_) => (true, true),
-        };
-        if !done {
-            return BackendStep::Working;
-        }
-        self.optimizing = false;
-        if failed {
-            self.counters.failures += 1;
-        }
-        self.counters.optimizations += 1;
-        BackendStep::Finished
+        let p = s.advance(graph, solver, left);
+        (p, s.last_work())
     }
 }
 

@@ -141,6 +141,8 @@ pub struct ChunkedSolve {
     /// Running sums (robust cost, chi2) of the current evaluation or assembly.
     acc: (f64, f64),
     rejected: usize,
+    /// Work units of the last call.
+    spent: u64,
 }
 
 impl ChunkedSolve {
@@ -193,6 +195,7 @@ impl ChunkedSolve {
             cursor: 0,
             acc: (0.0, 0.0),
             rejected: 0,
+            spent: 0,
         })
     }
 
@@ -221,12 +224,19 @@ impl ChunkedSolve {
         let mut spent = 0u64;
         loop {
             if spent >= budget {
+                self.spent = spent;
                 return Progress::Working;
             }
             if let Some(done) = self.phase_step(nodes, tail, edges, ws, budget, &mut spent) {
+                self.spent = spent;
                 return done;
             }
         }
+    }
+
+    /// The work units the last [`ChunkedSolve::advance`] used.
+    pub fn last_work(&self) -> u64 {
+        self.spent
     }
 
     fn fail(&self, error: SolveError) -> Progress {
