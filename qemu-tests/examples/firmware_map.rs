@@ -20,14 +20,21 @@ use cloi_qemu_tests::mapper::{run_mapper_timeout, MapperRun};
 use cloi_qemu_tests::{build_firmware, firmware_elf, workspace_root};
 
 /// Sections printed, with the scans each covers.
-const SECTIONS: [(&str, &str); 7] = [
+const SECTIONS: [(&str, &str); 8] = [
     ("frontend", "accepted scans"),
     ("gpe", "accepted scans"),
     ("frontend_gpe", "scans that are not keyframes"),
     ("keyframe_update", "keyframes"),
     ("loop_search", "loop searches"),
     ("push_scan", "accepted scans"),
-    ("backend_working", "back-end steps that optimized"),
+    (
+        "backend_working",
+        "back-end steps that worked (optimizer or far loop search)",
+    ),
+    (
+        "backend_optimizer",
+        "back-end steps that advanced the optimizer",
+    ),
 ];
 
 /// The front laser's mounting from the log's `robot_frontlaser_offset` parameter (forward

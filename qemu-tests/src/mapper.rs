@@ -46,7 +46,7 @@ pub struct MapperRun {
     pub counters: BTreeMap<String, u64>,
     /// Instruction percentiles per section (`push_scan`, `frontend_gpe`, `keyframe_scan`, the
     /// parts `frontend`, `gpe`, `keyframe_update`, `loop_search`,
-    /// `backend_step`, `backend_working`).
+    /// `backend_step`, `backend_working`, `backend_optimizer`).
     pub sections: BTreeMap<String, Percentiles>,
     /// SYS stack high-water mark, bytes.
     pub stack_used_bytes: u64,

@@ -43,13 +43,18 @@ const BACKEND_ITERATIONS: u32 = 5;
 ///   570,830 / 1,025,890 / 1,295,490; `loop_search` (the windowed search, which finds no
 ///   candidate yet in these scans, and keeping the keyframe's scan for the far search)
 ///   4,920 / 8,810 / 8,810;
-/// * `backend_working` (back-end steps that optimized, 5 iterations at most): 401,890 /
-///   614,260 / 614,260.
+/// * `backend_working` (back-end steps that worked: the optimizer, or the far loop search in
+///   the turns it leaves idle): 412,170 / 626,140 / 626,140 (3 steps, all the optimizer's);
+/// * `backend_optimizer` (back-end steps that advanced the optimizer: chunks of at most
+///   `backend.work_budget` work units, solves of 5 iterations at most): the same 3 steps; on
+///   these scans the graph is small (164 nodes) and every solve ends within one step's
+///   budget, so these are whole solves. The whole log, where steps are cut by the budget, is
+///   [`intel_whole_log_backend_chunks_stay_bounded`].
 ///
 /// The ceilings leave about 25 %. Issue 8's targets are far above them: front-end + GPE
 /// median <= 5 M and p99 <= 10 M instructions (a 10 Hz LiDAR under 10 % of a 1 GHz A9 on
 /// average), GPE update p99 <= 1 M.
-const BUDGETS: [(&str, u64, u64, u64); 8] = [
+const BUDGETS: [(&str, u64, u64, u64); 9] = [
     ("push_scan", 1_100_000, 5_570_000, 6_640_000),
     ("frontend_gpe", 1_030_000, 5_250_000, 6_640_000),
     ("keyframe_scan", 1_850_000, 6_450_000, 6_640_000),
@@ -57,7 +62,8 @@ const BUDGETS: [(&str, u64, u64, u64); 8] = [
     ("gpe", 4_400, 5_500, 5_600),
     ("keyframe_update", 715_000, 1_280_000, 1_620_000),
     ("loop_search", 6_200, 11_000, 11_000),
-    ("backend_working", 510_000, 770_000, 770_000),
+    ("backend_working", 515_000, 785_000, 785_000),
+    ("backend_optimizer", 515_000, 785_000, 785_000),
 ];
 
 /// Stack high-water budget (issue 8: at most 64 KiB).
@@ -181,4 +187,44 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         last.y,
         last.theta
     );
+}
+
+/// The back-end's chunks on the whole intel.clf (13,631 scans; 2,720 frame nodes and 82 loop
+/// closures at the end, no pruning in the `home` profile's pools), under the same firmware:
+/// the steps that advanced the optimizer took median 2,568,570, p99 11,558,150 and max
+/// 12,114,280 instructions (3,144 steps). The ceilings below leave about 25 %; they are not
+/// yet the 5 M target: the gate and the structural refresh (minimum-degree ordering) still
+/// run whole inside a step.
+///
+/// About 10 minutes of QEMU on the shared 2-core machine: too long for CI, whose whole suite
+/// already takes 43 of its 45 minutes, so it is ignored there; run it with `cargo test -p
+/// cloi-qemu-tests --test mapper -- --ignored --nocapture`.
+const WHOLE_LOG_OPTIMIZER: (u64, u64, u64) = (3_220_000, 14_450_000, 15_150_000);
+
+#[test]
+#[ignore = "the whole intel log: about 10 minutes of QEMU"]
+fn intel_whole_log_backend_chunks_stay_bounded() {
+    let Some(clf) = cloi_host::dataset::shared_file("carmen/intel.clf") else {
+        return;
+    };
+    let dir = workspace_root().join("target").join("qemu-mapper-whole");
+    std::fs::create_dir_all(&dir).unwrap();
+    let dir = dir.canonicalize().unwrap();
+    let log = dir.join("intel.cloilog");
+    cloi_host::io::cloilog::carmen_to_cloilog(&clf, &log, false, None, None).unwrap();
+    build_firmware().expect("firmware builds");
+    let elf = firmware_elf("cloi-mapper");
+    let fw = cloi_qemu_tests::mapper::run_mapper_timeout(&elf, &log, &dir.join("poses.txt"), 3600)
+        .expect("mapper firmware run");
+    std::fs::write(dir.join("firmware.log"), &fw.log).unwrap();
+    let p = fw.sections["backend_optimizer"];
+    println!(
+        "backend_optimizer: n {} min {} median {} p99 {} max {}",
+        p.n, p.min, p.median, p.p99, p.max
+    );
+    assert!(fw.counters["keyframes"] > 2000, "{}", fw.log);
+    let (median, p99, max) = WHOLE_LOG_OPTIMIZER;
+    assert!(p.median <= median, "median {} > {median}", p.median);
+    assert!(p.p99 <= p99, "p99 {} > {p99}", p.p99);
+    assert!(p.max <= max, "max {} > {max}", p.max);
 }

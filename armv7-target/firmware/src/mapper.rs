@@ -113,6 +113,9 @@ pub struct ScanCost {
     pub backend: u64,
     /// The back-end step had nothing to do.
     pub backend_idle: bool,
+    /// The back-end step advanced the optimizer (rather than the far loop search that takes
+    /// the turns it leaves idle).
+    pub backend_optimized: bool,
     /// Instructions of each part of `push_scan`, indexed by [`section_index`]: front-end,
     /// GPE, keyframe, loop search (zero for a part that did not run).
     pub sections: [u64; 4],
@@ -236,6 +239,7 @@ fn release(state: &mut State, cost: &mut EventCost, at_end: bool) {
 /// The cost of one pushed scan (`push_scan` instructions `n`), with the back-end step after
 /// it.
 fn after_push(mapper: &mut Mapper<'_>, p: Pushed, n: u64, probe: &SectionTimer) -> ScanCost {
+    let steps = mapper.stats().backend_steps;
     let (step, backend) = measure(|| mapper.step_backend(BACKEND_ITERATIONS_PER_SCAN));
     ScanCost {
         output: p.result.ok(),
@@ -243,6 +247,7 @@ fn after_push(mapper: &mut Mapper<'_>, p: Pushed, n: u64, probe: &SectionTimer) 
         push_scan: n,
         backend,
         backend_idle: step == BackendStep::Idle,
+        backend_optimized: mapper.stats().backend_steps != steps,
         sections: probe.counts,
         loop_search: probe.loop_search,
     }
@@ -267,6 +272,7 @@ const FLAG_ACCEPTED: u8 = 1;
 const FLAG_KEYFRAME: u8 = 2;
 const FLAG_BACKEND_WORKED: u8 = 4;
 const FLAG_LOOP_SEARCH: u8 = 8;
+const FLAG_BACKEND_OPTIMIZED: u8 = 16;
 
 /// Prints `stat=NAME n= min= median= p99= max= mean=` over the counts whose flags match.
 fn print_stat(
@@ -394,6 +400,9 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
                 if cost.loop_search {
                     *f |= FLAG_LOOP_SEARCH;
                 }
+                if cost.backend_optimized {
+                    *f |= FLAG_BACKEND_OPTIMIZED;
+                }
                 if let Some(o) = &cost.output {
                     *f |= FLAG_ACCEPTED | if o.keyframe { FLAG_KEYFRAME } else { 0 };
                 }
@@ -518,6 +527,14 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
         bc.iter().copied(),
         fl,
         |f| f & FLAG_BACKEND_WORKED != 0,
+        scratch,
+    );
+    // The optimizer's chunks alone (the far loop search takes the other working steps).
+    print_stat(
+        "backend_optimizer",
+        bc.iter().copied(),
+        fl,
+        |f| f & FLAG_BACKEND_OPTIMIZED != 0,
         scratch,
     );
     println!(

@@ -2,10 +2,14 @@
 //! optimization schedule and the pruning that makes room in a full pool.
 //!
 //! **Optimization.** An optimization is due after a new loop closure, after a number of new
-//! frame nodes, or on request. It runs over several calls of [`BackendSchedule::step`], each a
-//! few Gauss-Newton iterations, up to a total per optimization, so the caller decides how much
-//! back-end work fits between frames. A finished optimization is reported so the caller can
-//! take its result as the GPE's new anchor.
+//! frame nodes, or on request. It is a sequence of solves of at most the caller's iterations
+//! each, up to a total per optimization; every solve is a [`ChunkedSolve`], and one call of
+//! [`BackendSchedule::step`] advances it by at most [`ScheduleParams::work_budget`] work units
+//! (module `solver::resumable`: about 60 Cortex-A9 instructions each), so the back-end's share
+//! of a frame is bounded by work, not by iterations. Frame nodes and loop edges that the
+//! mapper adds while a solve runs join the next solve (the running one carries the new nodes
+//! along rigidly). A finished optimization is reported so the caller can take its result as
+//! the GPE's new anchor.
 //!
 //! **Pool pruning.** When the next frame node might not fit the node or edge pool,
 //! [`make_room`] optimizes the graph to convergence (pruning linearizes at the current
@@ -16,7 +20,9 @@
 use crate::backend::cells::CellParams;
 use crate::backend::prune::{prune, PruneParams, PruneReport, PruneScratch, Weighting};
 use crate::graph::PoseGraph;
-use crate::solver::{self, Method, SolveError, SolverBuffers, SolverOptions};
+use crate::solver::{
+    self, ChunkedSolve, Method, Progress, SolveError, SolverBuffers, SolverOptions,
+};
 
 /// Free edge slots kept for the loop closures of one frame node and the pruner's tree edges.
 const EDGE_MARGIN: usize = 16;
@@ -43,6 +49,9 @@ pub struct ScheduleParams {
     pub max_iterations: u32,
     /// Chi2 threshold of the solver's odometry-chain gate (0: off).
     pub gate_chi2: f64,
+    /// Most work units of one step (see `solver::work`); 0: no limit, every step runs a whole
+    /// solve.
+    pub work_budget: u64,
 }
 
 /// Parameters of the pool pruning.
@@ -67,10 +76,12 @@ pub struct BackendCounters {
     pub optimizations: u32,
     /// Optimizations that failed (the estimate was kept).
     pub failures: u32,
+    /// Solves abandoned because the graph was pruned or cleared while they ran.
+    pub abandoned: u32,
 }
 
 /// The back-end's schedule state.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct BackendSchedule {
     /// Frame nodes added since the last optimization started.
     pending_keyframes: u32,
@@ -78,6 +89,8 @@ pub struct BackendSchedule {
     pending_loop: bool,
     optimizing: bool,
     iterations_done: u32,
+    /// The solve in progress.
+    solve: Option<ChunkedSolve>,
     counters: BackendCounters,
 }
 
@@ -89,10 +102,12 @@ impl BackendSchedule {
             pending_loop: false,
             optimizing: false,
             iterations_done: 0,
+            solve: None,
             counters: BackendCounters {
                 steps: 0,
                 optimizations: 0,
                 failures: 0,
+                abandoned: 0,
             },
         }
     }
@@ -111,6 +126,9 @@ impl BackendSchedule {
     /// abandoned.
     pub fn interrupt(&mut self) {
         self.optimizing = false;
+        if self.solve.take().is_some() {
+            self.counters.abandoned += 1;
+        }
     }
 
     /// Counters so far.
@@ -118,7 +136,8 @@ impl BackendSchedule {
         self.counters
     }
 
-    /// Runs at most `iterations` Gauss-Newton iterations of the due optimization.
+    /// Advances the due optimization by at most `params.work_budget` work units; a solve
+    /// started by this call runs at most `iterations` Gauss-Newton iterations.
     pub fn step(
         &mut self,
         graph: &mut PoseGraph<'_>,
@@ -137,34 +156,78 @@ impl BackendSchedule {
             self.pending_keyframes = 0;
         }
         self.counters.steps += 1;
-        let left = params.max_iterations.saturating_sub(self.iterations_done);
-        let options = SolverOptions {
-            method: Method::GaussNewton,
-            max_iterations: iterations.max(1).min(left.max(1)),
-            linear_init: false,
-            gate_chi2: params.gate_chi2,
-            ..SolverOptions::default()
-        };
-        let (done, failed) = match solver::solve(graph, solver, &options) {
-            Ok(r) => {
-                self.iterations_done += r.iterations;
-                (true, false)
+        // With a finite budget, what a finished solve leaves of it goes to the next solve of
+        // the same optimization; without one, a step is one whole solve.
+        let mut left = budget(params);
+        loop {
+            let (outcome, used) = self.advance(graph, solver, params, iterations, left);
+            let Progress::Done(result) = outcome else {
+                return BackendStep::Working;
+            };
+            self.solve = None;
+            let (done, failed) = match result {
+                Ok(r) => {
+                    self.iterations_done += r.iterations;
+                    (true, false)
+                }
+                Err(f) if f.error == SolveError::MaxIterations => {
+                    self.iterations_done += f.report.iterations;
+                    (self.iterations_done >= params.max_iterations, false)
+                }
+                Err(_) => (true, true),
+            };
+            if done {
+                self.optimizing = false;
+                if failed {
+                    self.counters.failures += 1;
+                }
+                self.counters.optimizations += 1;
+                return BackendStep::Finished;
             }
-            Err(f) if f.error == SolveError::MaxIterations => {
-                self.iterations_done += f.report.iterations;
-                (self.iterations_done >= params.max_iterations, false)
+            left = left.saturating_sub(used);
+            if params.work_budget == 0 || left == 0 || used == 0 {
+                return BackendStep::Working;
             }
-            Err(_) => (true, true),
+        }
+    }
+
+    /// Advances the running solve, or starts the optimization's next one, by at most `left`
+    /// work units; returns its progress and the units used.
+    fn advance(
+        &mut self,
+        graph: &mut PoseGraph<'_>,
+        solver: &mut SolverBuffers<'_>,
+        params: &ScheduleParams,
+        iterations: u32,
+        left: u64,
+    ) -> (Progress, u64) {
+        let s = match &mut self.solve {
+            Some(s) => s,
+            None => {
+                let remaining = params.max_iterations.saturating_sub(self.iterations_done);
+                let options = SolverOptions {
+                    method: Method::GaussNewton,
+                    max_iterations: iterations.max(1).min(remaining.max(1)),
+                    linear_init: false,
+                    gate_chi2: params.gate_chi2,
+                    ..SolverOptions::default()
+                };
+                match ChunkedSolve::start(graph, solver, &options) {
+                    Ok(s) => self.solve.insert(s),
+                    Err(f) => return (Progress::Done(Err(f)), 0),
+                }
+            }
         };
-        if !done {
-            return BackendStep::Working;
-        }
-        self.optimizing = false;
-        if failed {
-            self.counters.failures += 1;
-        }
-        self.counters.optimizations += 1;
-        BackendStep::Finished
+        let p = s.advance(graph, solver, left);
+        (p, s.last_work())
+    }
+}
+
+/// The work budget of one step in `solver::work` units.
+fn budget(params: &ScheduleParams) -> u64 {
+    match params.work_budget {
+        0 => u64::MAX,
+        b => b,
     }
 }
 

@@ -18,10 +18,10 @@
 //!    inside the pose uncertainty, giving max-mixture loop edges.
 //!
 //! The **back-end** (block c, [`Mapper::step_backend`] over
-//! [`BackendSchedule`]) optimizes the graph in steps
-//! of a few Gauss-Newton iterations; a finished optimization chooses the GPE's anchor. The
-//! caller decides when to step it (every scan, in a background thread, or late on purpose to
-//! test the GPE).
+//! [`BackendSchedule`]) optimizes the graph in steps of at most
+//! [`BackendConfig::work_budget`] work units each (a solve resumes where the last step left
+//! it); a finished optimization chooses the GPE's anchor. The caller decides when to step it
+//! (every scan, in a background thread, or late on purpose to test the GPE).
 //!
 //! # Frames and nodes
 //! A frame node is created per keyframe; the LiDAR keyframe hangs off it with the identity
@@ -132,6 +132,7 @@ impl MapperConfig {
             every_keyframes: self.backend.every_keyframes,
             max_iterations: self.backend.max_iterations,
             gate_chi2: self.backend.gate_chi2,
+            work_budget: self.backend.work_budget,
         }
     }
 }
@@ -562,8 +563,9 @@ impl<'r> Mapper<'r> {
         self.st.backend.loop_added();
     }
 
-    /// Runs one back-end step of at most `iterations` Gauss-Newton iterations; a finished
-    /// optimization chooses the GPE's anchor.
+    /// Runs one back-end step: at most `config.backend.work_budget` work units of the due
+    /// optimization, whose solves run at most `iterations` Gauss-Newton iterations each; a
+    /// finished optimization chooses the GPE's anchor.
     pub fn step_backend(&mut self, iterations: u32) -> BackendStep {
         let params = self.cfg.schedule();
         let step = self

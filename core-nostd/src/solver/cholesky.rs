@@ -102,11 +102,70 @@ pub(crate) fn factorize(
     link: &mut [u32],
     cursor: &mut [u32],
 ) -> Result<(), usize> {
+    factorize_begin(n, row_head);
+    let mut f = Factor {
+        col_end,
+        rows,
+        values,
+        diag,
+        work,
+        row_head,
+        link,
+        cursor,
+    };
+    factorize_columns(&mut f, 0, n, u64::MAX).map(|_| ())
+}
+
+/// The borrowed storage of a factorization that [`factorize_columns`] advances.
+pub(crate) struct Factor<'a> {
+    pub col_end: &'a [u32],
+    pub rows: &'a [u32],
+    pub values: &'a mut [Block],
+    pub diag: &'a mut [Block],
+    pub work: &'a mut [Block],
+    pub row_head: &'a mut [u32],
+    pub link: &'a mut [u32],
+    pub cursor: &'a mut [u32],
+}
+
+/// Starts a factorization of `n` columns: no column has updates pending yet.
+pub(crate) fn factorize_begin(n: usize, row_head: &mut [u32]) {
     for h in row_head.iter_mut().take(n) {
         *h = NONE;
     }
-    let mut start = 0usize;
-    for j in 0..n {
+}
+
+/// Factorizes columns `from..n` in order (see [`factorize`]; the linked lists of pending
+/// updates live in `f`, so a factorization may stop after any column and resume later with
+/// the same result to the bit) until at least `budget` blocks were touched. Returns the next
+/// column and the blocks touched (one per `3x3` multiply-subtract, one per block scaled by the
+/// pivot), or `Err(j)` as [`factorize`].
+pub(crate) fn factorize_columns(
+    f: &mut Factor<'_>,
+    from: usize,
+    n: usize,
+    budget: u64,
+) -> Result<(usize, u64), usize> {
+    let Factor {
+        col_end,
+        rows,
+        values,
+        diag,
+        work,
+        row_head,
+        link,
+        cursor,
+    } = f;
+    let mut touched = 0u64;
+    let mut start = if from == 0 {
+        0
+    } else {
+        col_end[from - 1] as usize
+    };
+    for j in from..n {
+        if touched >= budget {
+            return Ok((j, touched));
+        }
         let end = col_end[j] as usize;
         work[j] = diag[j];
         for p in start..end {
@@ -123,6 +182,7 @@ pub(crate) fn factorize(
                 let r = rows[q] as usize;
                 sub_abt(&mut work[r], &values[q], &ljk);
             }
+            touched += (kend - p) as u64;
             if p + 1 < kend {
                 cursor[k as usize] = (p + 1) as u32;
                 let r = rows[p + 1] as usize;
@@ -136,6 +196,7 @@ pub(crate) fn factorize(
         for p in start..end {
             values[p] = mul_abt(&work[rows[p] as usize], &inv);
         }
+        touched += (end - start) as u64 + 1;
         if start < end {
             cursor[j] = start as u32;
             let r = rows[start] as usize;
@@ -144,7 +205,7 @@ pub(crate) fn factorize(
         }
         start = end;
     }
-    Ok(())
+    Ok((n, touched))
 }
 
 /// Solves `L L^T x = b` in place (`x` overwrites `b`).
@@ -156,8 +217,33 @@ pub(crate) fn solve_in_place(
     diag: &[Block],
     b: &mut [Vec3],
 ) {
-    let mut start = 0usize;
-    for j in 0..n {
+    forward(n, col_end, rows, values, diag, b, 0, u64::MAX);
+    backward(col_end, rows, values, diag, b, n, u64::MAX);
+}
+
+/// The forward solve `L y = b` over columns `from..n`, until at least `budget` blocks were
+/// touched; returns the next column and the blocks touched.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn forward(
+    n: usize,
+    col_end: &[u32],
+    rows: &[u32],
+    values: &[Block],
+    diag: &[Block],
+    b: &mut [Vec3],
+    from: usize,
+    budget: u64,
+) -> (usize, u64) {
+    let mut touched = 0u64;
+    let mut start = if from == 0 {
+        0
+    } else {
+        col_end[from - 1] as usize
+    };
+    for j in from..n {
+        if touched >= budget {
+            return (j, touched);
+        }
         let end = col_end[j] as usize;
         let y = mul_v(&diag[j], &b[j]);
         b[j] = y;
@@ -168,9 +254,29 @@ pub(crate) fn solve_in_place(
             b[r][1] -= d[1];
             b[r][2] -= d[2];
         }
+        touched += (end - start) as u64 + 1;
         start = end;
     }
-    for j in (0..n).rev() {
+    (n, touched)
+}
+
+/// The backward solve `L^T x = y` over columns `until-1` down to 0, until at least `budget`
+/// blocks were touched; returns the number of columns still to solve (0 when done) and the
+/// blocks touched.
+pub(crate) fn backward(
+    col_end: &[u32],
+    rows: &[u32],
+    values: &[Block],
+    diag: &[Block],
+    b: &mut [Vec3],
+    until: usize,
+    budget: u64,
+) -> (usize, u64) {
+    let mut touched = 0u64;
+    for j in (0..until).rev() {
+        if touched >= budget {
+            return (j + 1, touched);
+        }
         let start = if j == 0 { 0 } else { col_end[j - 1] as usize };
         let end = col_end[j] as usize;
         let mut acc = b[j];
@@ -181,5 +287,7 @@ pub(crate) fn solve_in_place(
             acc[2] -= d[2];
         }
         b[j] = mul_tv(&diag[j], &acc);
+        touched += (end - start) as u64 + 1;
     }
+    (0, touched)
 }

@@ -411,9 +411,25 @@ pub(crate) fn admit_by_innovation(
     ws: &mut SolverBuffers<'_>,
     chi2: f64,
 ) -> usize {
+    admit_range(nodes, edges, ws, chi2, 0, usize::MAX).1
+}
+
+/// [`admit_by_innovation`] over the edges from `from` on, stopping before the loop that would
+/// be the `max_tests + 1`-th tested (each test is three solves with the factor); returns the
+/// next edge, the loops admitted and the loops tested. The tests are independent of each other (a loop's
+/// admission changes only its own flag, not the factor), so split runs admit the same loops.
+pub(crate) fn admit_range(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    chi2: f64,
+    from: usize,
+    max_tests: usize,
+) -> (usize, usize, usize) {
     let vars = ws.key.vars;
     let mut admitted = 0;
-    for (k, e) in edges.iter().enumerate() {
+    let mut tested = 0;
+    for (k, e) in edges.iter().enumerate().skip(from) {
         let f = ws.edge_flags[k];
         if f & GATE_PASSED != 0
             || e.kind != EdgeKind::Loop
@@ -437,6 +453,10 @@ pub(crate) fn admit_by_innovation(
         let Some(cov_z) = spd_inverse(&info) else {
             continue;
         };
+        if tested >= max_tests {
+            return (k, admitted, tested);
+        }
+        tested += 1;
         let jj: Block = [ca, sa, 0.0, -sa, ca, 0.0, 0.0, 0.0, 1.0];
         let ji: Block = [-ca, -sa, gx, sa, -ca, gy, 0.0, 0.0, -1.0];
         let (pi, pj) = (ws.node_var[i], ws.node_var[j]);
@@ -476,5 +496,5 @@ pub(crate) fn admit_by_innovation(
             admitted += 1;
         }
     }
-    admitted
+    (edges.len(), admitted, tested)
 }

@@ -10,9 +10,9 @@ use crate::graph::{PoseEdge, PoseNode, RobustKernel};
 use crate::storage::NodeId;
 
 /// Most step halvings of one Gauss-Newton iteration.
-const MAX_HALVINGS: u32 = 8;
+pub(super) const MAX_HALVINGS: u32 = 8;
 /// Iterations after which a change of the active edge set no longer blocks convergence.
-const SETTLE_ITERATIONS: u32 = 8;
+pub(super) const SETTLE_ITERATIONS: u32 = 8;
 
 /// Assembles at the current estimate, adds `lambda` to the diagonal (a negative `lambda` means
 /// `1e-5` times the largest diagonal entry of `H`), factorizes and solves; the step is left in

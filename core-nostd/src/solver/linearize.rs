@@ -67,9 +67,39 @@ pub(crate) fn evaluate(
     warm: Warm,
     flags: &[u8],
 ) -> (f64, f64) {
-    let mut cost = 0.0;
-    let mut chi2 = 0.0;
-    for (k, (edge, t)) in edges.iter().zip(trig).enumerate() {
+    let mut acc = (0.0, 0.0);
+    evaluate_range(
+        nodes,
+        edges,
+        trig,
+        limit,
+        warm,
+        flags,
+        0..edges.len(),
+        &mut acc,
+    );
+    acc
+}
+
+/// [`evaluate`] over the edges in `range`, added to `acc` (robust cost, chi2) in edge order,
+/// so that a sum split over several ranges is the same to the bit as one pass.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn evaluate_range(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    trig: &[[f64; 2]],
+    limit: usize,
+    warm: Warm,
+    flags: &[u8],
+    range: core::ops::Range<usize>,
+    acc: &mut (f64, f64),
+) {
+    let (mut cost, mut chi2) = *acc;
+    let start = range.start;
+    let picked = edges.get(range.clone()).unwrap_or_default();
+    let picked_trig = trig.get(range).unwrap_or_default();
+    for (off, (edge, t)) in picked.iter().zip(picked_trig).enumerate() {
+        let k = start + off;
         if !within(edge, limit) {
             continue;
         }
@@ -86,7 +116,7 @@ pub(crate) fn evaluate(
             cost += weigh(edge, c, warm, flags.get(k).copied().unwrap_or(0)).1;
         }
     }
-    (cost, chi2)
+    *acc = (cost, chi2);
 }
 
 /// The system being assembled: slices of the solver's workspace.
@@ -148,6 +178,15 @@ pub(crate) fn assemble(
     stage: Stage,
     s: &mut System<'_>,
 ) -> (f64, f64) {
+    assemble_begin(vars, nnz, s);
+    let mut acc = (0.0, 0.0);
+    assemble_edges(nodes, edges, 0..edges.len(), stage, s, &mut acc);
+    assemble_end(vars, stage, s);
+    acc
+}
+
+/// The first part of [`assemble`]: clears `H` and `-g`.
+pub(crate) fn assemble_begin(vars: usize, nnz: usize, s: &mut System<'_>) {
     for d in s.diag.iter_mut().take(vars) {
         *d = [0.0; 9];
     }
@@ -157,9 +196,22 @@ pub(crate) fn assemble(
     for r in s.rhs.iter_mut().take(vars) {
         *r = [0.0; 3];
     }
-    let mut cost = 0.0;
-    let mut chi2 = 0.0;
-    for (k, edge) in edges.iter().enumerate() {
+}
+
+/// The middle part of [`assemble`]: adds the edges in `range` (in order, so a split assembly
+/// sums exactly as one pass) and their robust cost and chi2 to `acc`.
+pub(crate) fn assemble_edges(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    range: core::ops::Range<usize>,
+    stage: Stage,
+    s: &mut System<'_>,
+    acc: &mut (f64, f64),
+) {
+    let (mut cost, mut chi2) = *acc;
+    let start = range.start;
+    for (off, edge) in edges.get(range).unwrap_or_default().iter().enumerate() {
+        let k = start + off;
         let (Some(ni), Some(nj)) = (
             nodes.get(edge.from.0 as usize),
             nodes.get(edge.to.0 as usize),
@@ -226,7 +278,12 @@ pub(crate) fn assemble(
             }
         }
     }
-    // Keep the unknowns a stage leaves out at zero with a unit diagonal.
+    *acc = (cost, chi2);
+}
+
+/// The last part of [`assemble`]: the unknowns a stage leaves out stay at zero with a unit
+/// diagonal.
+pub(crate) fn assemble_end(vars: usize, stage: Stage, s: &mut System<'_>) {
     let pad = match stage {
         Stage::Full => None,
         Stage::Headings => Some([0, 4]),
@@ -238,7 +295,6 @@ pub(crate) fn assemble(
             d[idx[1]] = 1.0;
         }
     }
-    (cost, chi2)
 }
 
 /// How max-mixture edges are weighted during the warm start of a robust solve.

@@ -39,7 +39,8 @@
 
 //!
 //! Modules: `options` (what a solve is asked and what it reports), `iterate` (the
-//! Gauss-Newton and Levenberg-Marquardt iterations and their linear step), `ordering`,
+//! Gauss-Newton and Levenberg-Marquardt iterations and their linear step), `resumable` (the
+//! same Gauss-Newton solve in bounded chunks of work, for the back-end's steps), `ordering`,
 //! `cholesky`, `linearize`, `gate`, `marginals` and `workspace`.
 
 mod cholesky;
@@ -49,10 +50,12 @@ mod linearize;
 mod marginals;
 mod options;
 mod ordering;
+mod resumable;
 mod workspace;
 
 pub use marginals::marginal_information_traces;
 pub use options::{Method, SolveError, SolveFailure, SolveReport, SolverOptions, AUTO_LM_TAU};
+pub use resumable::{work, ChunkedSolve, Progress};
 pub use workspace::{AnalysisKey, Block, SolverBuffers, SolverWorkspace, Vec3};
 
 use crate::graph::{PoseEdge, PoseGraph, PoseNode, RobustKernel};
@@ -74,69 +77,8 @@ pub fn solve(
     let mut report = SolveReport::default();
     let fail = |error, report| Err(SolveFailure { error, report });
     let (nodes, edges) = graph.split_mut();
-    let n = nodes.len();
-    let node_lens = [
-        ws.node_var.len(),
-        ws.var_node.len(),
-        ws.col_end.len(),
-        ws.diag.len(),
-        ws.work.len(),
-        ws.rhs.len(),
-        ws.step.len(),
-        ws.saved.len(),
-    ];
-    if node_lens
-        .iter()
-        .chain(
-            ws.scratch
-                .iter()
-                .map(|s| s.len())
-                .collect::<Lens>()
-                .0
-                .iter(),
-        )
-        .any(|&l| l < n)
-    {
-        return fail(
-            SolveError::Capacity {
-                what: "nodes",
-                capacity: ws.node_capacity(),
-            },
-            report,
-        );
-    }
-    if edges.len() > ws.edge_slot.len() || edges.len() > ws.edge_trig.len() {
-        return fail(
-            SolveError::Capacity {
-                what: "edges",
-                capacity: ws.edge_capacity(),
-            },
-            report,
-        );
-    }
-    if ws.values.len() < ws.rows.len() {
-        return fail(
-            SolveError::Capacity {
-                what: "factor blocks",
-                capacity: ws.values.len(),
-            },
-            report,
-        );
-    }
-    for e in edges.iter() {
-        if e.from.0 as usize >= nodes.len() || e.to.0 as usize >= nodes.len() {
-            return fail(SolveError::InvalidGraph, report);
-        }
-    }
-
-    if edges.len() > ws.edge_flags.len() {
-        return fail(
-            SolveError::Capacity {
-                what: "edges",
-                capacity: ws.edge_flags.len(),
-            },
-            report,
-        );
+    if let Err(e) = check_buffers(nodes, edges, ws) {
+        return fail(e, report);
     }
     for (t, e) in ws.edge_trig.iter_mut().zip(edges.iter()) {
         *t = [
@@ -333,6 +275,68 @@ pub fn solve(
         Ok(()) => Ok(report),
         Err(error) => fail(error, report),
     }
+}
+
+/// The checks of a solve before any work: the workspace holds the graph, and every edge names
+/// nodes of the graph.
+pub(super) fn check_buffers(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    ws: &SolverBuffers<'_>,
+) -> Result<(), SolveError> {
+    let n = nodes.len();
+    let node_lens = [
+        ws.node_var.len(),
+        ws.var_node.len(),
+        ws.col_end.len(),
+        ws.diag.len(),
+        ws.work.len(),
+        ws.rhs.len(),
+        ws.step.len(),
+        ws.saved.len(),
+    ];
+    if node_lens
+        .iter()
+        .chain(
+            ws.scratch
+                .iter()
+                .map(|s| s.len())
+                .collect::<Lens>()
+                .0
+                .iter(),
+        )
+        .any(|&l| l < n)
+    {
+        return Err(SolveError::Capacity {
+            what: "nodes",
+            capacity: ws.node_capacity(),
+        });
+    }
+    if edges.len() > ws.edge_slot.len() || edges.len() > ws.edge_trig.len() {
+        return Err(SolveError::Capacity {
+            what: "edges",
+            capacity: ws.edge_capacity(),
+        });
+    }
+    if ws.values.len() < ws.rows.len() {
+        return Err(SolveError::Capacity {
+            what: "factor blocks",
+            capacity: ws.values.len(),
+        });
+    }
+    for e in edges.iter() {
+        if e.from.0 as usize >= nodes.len() || e.to.0 as usize >= nodes.len() {
+            return Err(SolveError::InvalidGraph);
+        }
+    }
+
+    if edges.len() > ws.edge_flags.len() {
+        return Err(SolveError::Capacity {
+            what: "edges",
+            capacity: ws.edge_flags.len(),
+        });
+    }
+    Ok(())
 }
 
 /// Most rounds of innovation tests (and re-solves) after a gated max-mixture solve.

@@ -38,7 +38,8 @@ pub struct MapArgs {
     /// under a slow back-end); 0 runs it continuously.
     #[arg(long)]
     pub backend_delay: Option<f64>,
-    /// Back-end Gauss-Newton iterations after each scan in the deterministic schedule.
+    /// Most Gauss-Newton iterations of each solve the back-end starts (a back-end step runs
+    /// after each scan in the deterministic schedule, bounded by `backend.work_budget`).
     #[arg(long, default_value_t = 5)]
     pub backend_iterations: u32,
     /// Stop after this many scans.

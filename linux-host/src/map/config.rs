@@ -147,6 +147,9 @@ pub struct BackendSection {
     pub iterations: u32,
     /// Cell edge of the graph pruning (one node kept per cell and heading), metres.
     pub prune_cell_size: f64,
+    /// Most work units of one back-end step (about 60 Cortex-A9 instructions each; a solve
+    /// spans as many steps as it needs); 0: no limit, each step runs whole solves.
+    pub work_budget: u64,
 }
 
 /// How the run is scheduled.
@@ -261,6 +264,7 @@ impl MapConfig {
                 optimize_every_keyframes: c.backend.every_keyframes,
                 iterations: c.backend.max_iterations,
                 prune_cell_size: c.backend.prune_cell,
+                work_budget: c.backend.work_budget,
             },
             run,
         }
@@ -299,6 +303,7 @@ impl MapConfig {
         c.backend.every_keyframes = b.optimize_every_keyframes;
         c.backend.max_iterations = b.iterations;
         c.backend.prune_cell = b.prune_cell_size;
+        c.backend.work_budget = b.work_budget;
         c
     }
 

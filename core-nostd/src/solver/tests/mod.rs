@@ -392,3 +392,5 @@ proptest! {
         prop_assert!(numeric_gradient_norm(&mut g) < 1e-3 * (1.0 + r.final_chi2));
     }
 }
+
+mod chunked;

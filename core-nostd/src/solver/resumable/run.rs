@@ -1,0 +1,200 @@
+//! The Gauss-Newton runs of a [`ChunkedSolve`]: the end of an iteration (step halving and the
+//! stopping rule of `iterate::gauss_newton`), the sequence of runs of [`super::super::solve`]
+//! (warm start, free run, admission rounds), and the small helpers of the chunked phases.
+
+use super::{work, ChunkedSolve, Gn, Phase, Progress, Run};
+use crate::geom::Se2;
+use crate::graph::{PoseEdge, PoseNode};
+use crate::solver::gate;
+use crate::solver::iterate::{apply_step, MAX_HALVINGS, SETTLE_ITERATIONS};
+use crate::solver::linearize::{self, System, Warm};
+use crate::solver::{SolveError, SolverBuffers, ADMISSION_ROUNDS};
+
+impl ChunkedSolve {
+    /// The end of a Gauss-Newton iteration: step halving, divergence and the stopping rule
+    /// (as `iterate::gauss_newton`).
+    pub(super) fn judge(
+        &mut self,
+        nodes: &mut [PoseNode],
+        tail: &mut [PoseNode],
+        edges: &[PoseEdge],
+        ws: &mut SolverBuffers<'_>,
+        spent: &mut u64,
+    ) -> Option<Progress> {
+        let (new_cost, new_chi2) = self.acc;
+        let g = &mut self.gn;
+        if (new_cost.is_nan() || new_cost > g.cost)
+            && g.halvings < MAX_HALVINGS
+            && g.cost.is_finite()
+            && (!self.mixtures || g.warm == Warm::Dcs)
+        {
+            g.halvings += 1;
+            let vars = ws.key.vars;
+            for d in ws.rhs.iter_mut().take(vars) {
+                d[0] *= 0.5;
+                d[1] *= 0.5;
+                d[2] *= 0.5;
+            }
+            let before = nodes.last().map(|x| x.pose);
+            for (node, s) in nodes.iter_mut().zip(ws.saved.iter()) {
+                node.pose = *s;
+            }
+            g.largest = apply_step(nodes, ws.var_node, ws.rhs, vars);
+            carry(nodes, tail, before);
+            *spent = spent.saturating_add(2 * nodes.len() as u64 * work::NODE_UPDATE);
+            self.begin_sum(Phase::GnTrialCost);
+            return None;
+        }
+        self.report.final_cost = new_cost;
+        self.report.final_chi2 = new_chi2;
+        if !new_cost.is_finite() || new_cost > g.bound {
+            return self.run_ended(nodes, edges, ws, Some(SolveError::Diverged));
+        }
+        let decrease = g.cost - new_cost;
+        g.cost = new_cost;
+        let o = &self.options;
+        let settled = !g.changed || g.done > SETTLE_ITERATIONS;
+        if settled
+            && (g.largest < o.step_tolerance
+                || (decrease >= 0.0 && decrease <= o.relative_tolerance * new_cost)
+                || g.halvings == MAX_HALVINGS)
+        {
+            self.report.converged = true;
+            return self.run_ended(nodes, edges, ws, None);
+        }
+        self.phase = Phase::GnTop;
+        None
+    }
+
+    /// A Gauss-Newton run ended with `result` (`None`: converged): the next run, the
+    /// innovation tests or the final evaluation, in the order of [`super::solve`].
+    pub(super) fn run_ended(
+        &mut self,
+        nodes: &[PoseNode],
+        edges: &[PoseEdge],
+        ws: &SolverBuffers<'_>,
+        result: Option<SolveError>,
+    ) -> Option<Progress> {
+        let usable = matches!(result, None | Some(SolveError::MaxIterations));
+        let max = self.options.max_iterations;
+        match self.gn.run {
+            Run::Nominal | Run::Dcs if !usable => {
+                return Some(self.fail(result.unwrap_or(SolveError::InvalidGraph)));
+            }
+            Run::Nominal => self.begin_run(Run::Dcs, Warm::Dcs, max),
+            Run::Dcs => {
+                // Whole: one pass over the edges, the cost of an evaluation.
+                let v = gate::unit_variance(nodes, edges, ws);
+                self.free = Warm::Admit(self.options.gate_chi2 * v);
+                self.begin_run(Run::Free, self.free, max);
+            }
+            Run::Free | Run::Admission(_) => {
+                self.result = result;
+                let round = match self.gn.run {
+                    Run::Admission(k) => k + 1,
+                    _ => 0,
+                };
+                if self.gated && usable && round < ADMISSION_ROUNDS {
+                    // `rejected` counts the loops this round admits until the final count.
+                    self.rejected = 0;
+                    self.cursor = 0;
+                    self.phase = Phase::Admission(round);
+                } else {
+                    self.begin_sum(Phase::FinalCost);
+                }
+            }
+        }
+        None
+    }
+
+    /// Starts Gauss-Newton run `run` (at most `cap` iterations, stage caps as in
+    /// [`super::solve`]) with its initial cost evaluation.
+    pub(super) fn begin_run(&mut self, run: Run, warm: Warm, cap: u32) {
+        self.gn = Gn {
+            run,
+            warm,
+            cap: cap.min(self.options.max_iterations),
+            done: 0,
+            bound: self.options.divergence_factor * self.report.initial_cost.max(1.0),
+            cost: 0.0,
+            changed: false,
+            largest: 0.0,
+            halvings: 0,
+        };
+        self.begin_sum(Phase::GnCost);
+    }
+
+    pub(super) fn begin_sum(&mut self, phase: Phase) {
+        self.acc = (0.0, 0.0);
+        self.cursor = 0;
+        self.phase = phase;
+    }
+
+    /// The structural refresh's cost in work units, the ordering included when it is due.
+    pub(super) fn refresh_cost(&self, n: usize, m: usize) -> u64 {
+        (m as u64) * work::EDGE_REFRESH + (n as u64) * work::NODE_ORDERING
+    }
+
+    /// Evaluates the next edges of a cost sum into `acc`; true when the sum is complete.
+    pub(super) fn cost_chunk(
+        &mut self,
+        nodes: &[PoseNode],
+        edges: &[PoseEdge],
+        ws: &SolverBuffers<'_>,
+        warm: Warm,
+        left: u64,
+        spent: &mut u64,
+    ) -> bool {
+        let m = edges.len();
+        let end = chunk_end(self.cursor, m, left, work::EDGE_COST);
+        linearize::evaluate_range(
+            nodes,
+            edges,
+            ws.edge_trig,
+            nodes.len(),
+            warm,
+            ws.edge_flags,
+            self.cursor..end,
+            &mut self.acc,
+        );
+        *spent = spent.saturating_add((end - self.cursor) as u64 * work::EDGE_COST);
+        self.cursor = end;
+        end == m
+    }
+}
+
+/// The end of a chunk of items `from..m` costing `each` units with `left` units left (at least
+/// one item, so every call makes progress).
+pub(super) fn chunk_end(from: usize, m: usize, left: u64, each: u64) -> usize {
+    let items = (left / each.max(1)).max(1);
+    from.saturating_add(usize::try_from(items).unwrap_or(usize::MAX))
+        .min(m)
+}
+
+/// The assembly's view of the workspace.
+pub(super) fn system<'s>(ws: &'s mut SolverBuffers<'_>, warm: Warm) -> System<'s> {
+    System {
+        node_var: ws.node_var,
+        flags: ws.edge_flags,
+        warm,
+        edge_slot: ws.edge_slot,
+        trig: ws.edge_trig,
+        diag: ws.diag,
+        values: ws.values,
+        rhs: ws.rhs,
+    }
+}
+
+/// Moves the nodes appended after the solve started rigidly with the prefix's last node,
+/// which was at `before` (see the module documentation).
+pub(super) fn carry(prefix: &[PoseNode], tail: &mut [PoseNode], before: Option<Se2>) {
+    let (Some(before), Some(last)) = (before, prefix.last()) else {
+        return;
+    };
+    if tail.is_empty() || before == last.pose {
+        return;
+    }
+    for node in tail.iter_mut() {
+        node.pose = last.pose.compose(&before.between(&node.pose));
+    }
+}
