@@ -121,7 +121,9 @@ fn mahalanobis(n: u32) -> f64 {
             -2.0 + 0.1 * libm::cos(t),
             0.4 + 0.2 * libm::sin(0.3 * t),
         );
-        acc += pose_squared_mahalanobis(&origin, &p, &cov).unwrap_or(-1.0);
+        // The covariance is opaque to the optimizer: a caller factorizes a new covariance each
+        // time, so the factorization must not be hoisted out of the loop.
+        acc += pose_squared_mahalanobis(&origin, &p, core::hint::black_box(&cov)).unwrap_or(-1.0);
     }
     acc
 }
