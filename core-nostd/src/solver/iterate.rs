@@ -37,16 +37,7 @@ pub(super) fn linear_step(
         vars,
         nnz,
         stage,
-        &mut linearize::System {
-            node_var: ws.node_var,
-            flags: ws.edge_flags,
-            warm,
-            edge_slot: ws.edge_slot,
-            trig: ws.edge_trig,
-            diag: ws.diag,
-            values: ws.values,
-            rhs: ws.rhs,
-        },
+        &mut linearize::System::of(ws, warm),
     );
     let mut lambda = lambda;
     if lambda < 0.0 {

@@ -9,6 +9,7 @@
 
 use super::ordering::{NO_SLOT, TRANSPOSED};
 use super::workspace::{Block, Vec3};
+use super::SolverBuffers;
 use crate::graph::residual::{prior_residual, relative_residual};
 use crate::graph::{EdgeKind, PoseEdge, PoseNode};
 
@@ -130,6 +131,22 @@ pub(crate) struct System<'s> {
     pub diag: &'s mut [Block],
     pub values: &'s mut [Block],
     pub rhs: &'s mut [Vec3],
+}
+
+impl<'s> System<'s> {
+    /// The assembly's view of the solver's workspace.
+    pub(crate) fn of(ws: &'s mut SolverBuffers<'_>, warm: Warm) -> Self {
+        System {
+            node_var: ws.node_var,
+            flags: ws.edge_flags,
+            warm,
+            edge_slot: ws.edge_slot,
+            trig: ws.edge_trig,
+            diag: ws.diag,
+            values: ws.values,
+            rhs: ws.rhs,
+        }
+    }
 }
 
 #[inline(always)]

@@ -39,7 +39,7 @@ use crate::graph::{PoseEdge, PoseGraph, PoseNode, RobustKernel};
 use crate::storage::NodeId;
 
 mod run;
-use run::{carry, chunk_end, system};
+use run::{carry, chunk_end};
 
 /// The cost of each item in work units (one `3x3` block multiply-subtract of the
 /// factorization), measured on the Cortex-A9 (about 60 instructions per unit).
@@ -351,14 +351,14 @@ impl ChunkedSolve {
                     Err(e) => return self.run_ended(nodes, edges, ws, Some(e)),
                 }
                 let (vars, nnz) = (ws.key.vars, ws.key.nnz);
-                linearize::assemble_begin(vars, nnz, &mut system(ws, warm));
+                linearize::assemble_begin(vars, nnz, &mut linearize::System::of(ws, warm));
                 *spent = spent.saturating_add(((vars + nnz) / 8) as u64);
                 self.begin_sum(Phase::GnAssemble);
             }
             Phase::GnAssemble => {
                 let end = chunk_end(self.cursor, m, left, work::EDGE_ASSEMBLY);
                 let (warm, vars) = (self.gn.warm, ws.key.vars);
-                let mut s = system(ws, warm);
+                let mut s = linearize::System::of(ws, warm);
                 let range = self.cursor..end;
                 linearize::assemble_edges(nodes, edges, range, Stage::Full, &mut s, &mut self.acc);
                 *spent = spent.saturating_add((end - self.cursor) as u64 * work::EDGE_ASSEMBLY);

@@ -7,7 +7,7 @@ use crate::geom::Se2;
 use crate::graph::{PoseEdge, PoseNode};
 use crate::solver::gate;
 use crate::solver::iterate::{apply_step, MAX_HALVINGS, SETTLE_ITERATIONS};
-use crate::solver::linearize::{self, System, Warm};
+use crate::solver::linearize::{self, Warm};
 use crate::solver::{SolveError, SolverBuffers, ADMISSION_ROUNDS};
 
 impl ChunkedSolve {
@@ -169,20 +169,6 @@ pub(super) fn chunk_end(from: usize, m: usize, left: u64, each: u64) -> usize {
     let items = (left / each.max(1)).max(1);
     from.saturating_add(usize::try_from(items).unwrap_or(usize::MAX))
         .min(m)
-}
-
-/// The assembly's view of the workspace.
-pub(super) fn system<'s>(ws: &'s mut SolverBuffers<'_>, warm: Warm) -> System<'s> {
-    System {
-        node_var: ws.node_var,
-        flags: ws.edge_flags,
-        warm,
-        edge_slot: ws.edge_slot,
-        trig: ws.edge_trig,
-        diag: ws.diag,
-        values: ws.values,
-        rhs: ws.rhs,
-    }
 }
 
 /// Moves the nodes appended after the solve started rigidly with the prefix's last node,
