@@ -3,10 +3,23 @@
 //!
 //! Building reorders the slice in place: the median (along x at even depths, y at odd ones) of
 //! every range sits at the range's middle, the smaller half before it and the larger after.
-//! No index or node storage is needed; a query descends with recursion of depth
-//! `log2(len)` (11 for 1081 points).
+//! Medians are taken by a total order (the axis, then [`point_order`]), so the arrangement is
+//! a function of the points alone, whatever the selection algorithm. No index or node storage
+//! is needed.
+//!
+//! Building and querying walk the tree with an explicit stack instead of recursion, so the
+//! firmware's stack has a static bound. A range of `len` points has `floor(log2(len)) + 1`
+//! levels below it, and a depth-first walk keeps at most one waiting range per level plus the
+//! current one: [`LEVELS`] entries (`usize::BITS + 1`) hold any slice (12 for 1081 points).
 
-use crate::frontend::scan::ScanPoint;
+use core::cmp::Ordering;
+
+use crate::frontend::scan::{point_order, ScanPoint};
+use crate::sort::select_nth_by;
+
+/// Entries of the walks' explicit stacks: enough for a slice of any length (see the module
+/// doc).
+const LEVELS: usize = usize::BITS as usize + 1;
 
 /// A 2-d tree borrowing its points.
 #[derive(Debug, Clone, Copy)]
@@ -14,16 +27,34 @@ pub struct KdTree<'a> {
     points: &'a [ScanPoint],
 }
 
-fn build(points: &mut [ScanPoint], axis: usize) {
-    if points.len() <= 1 {
-        return;
-    }
-    let mid = points.len() / 2;
-    points.select_nth_unstable_by(mid, |a, b| a.p[axis].total_cmp(&b.p[axis]));
-    let (left, right) = points.split_at_mut(mid);
-    build(left, axis ^ 1);
-    if let Some((_, rest)) = right.split_first_mut() {
-        build(rest, axis ^ 1);
+/// The order of the medians along `axis`: a total order.
+fn axis_order(axis: usize, a: &ScanPoint, b: &ScanPoint) -> Ordering {
+    a.p[axis]
+        .total_cmp(&b.p[axis])
+        .then_with(|| point_order(a, b))
+}
+
+fn build(points: &mut [ScanPoint]) {
+    // (start, end, axis) of the ranges still to arrange.
+    let mut stack = [(0usize, 0usize, 0usize); LEVELS];
+    stack[0] = (0, points.len(), 0);
+    let mut waiting = 1usize;
+    while let Some(&(lo, hi, axis)) = waiting.checked_sub(1).and_then(|w| stack.get(w)) {
+        waiting -= 1;
+        let Some(range) = points.get_mut(lo..hi) else {
+            continue;
+        };
+        let mid = range.len() / 2;
+        select_nth_by(range, mid, |a, b| axis_order(axis, a, b));
+        for (s, e) in [(lo, lo + mid), (lo + mid + 1, hi)] {
+            if e > s + 1 {
+                // Never full (see the module doc).
+                if let Some(slot) = stack.get_mut(waiting) {
+                    *slot = (s, e, axis ^ 1);
+                    waiting += 1;
+                }
+            }
+        }
     }
 }
 
@@ -31,7 +62,7 @@ impl<'a> KdTree<'a> {
     /// Arranges `points` into a tree (in place) and borrows them. Non-finite points must not be
     /// present (preprocessing never produces them).
     pub fn build(points: &'a mut [ScanPoint]) -> KdTree<'a> {
-        build(points, 0);
+        build(points);
         KdTree { points }
     }
 
@@ -47,48 +78,55 @@ impl<'a> KdTree<'a> {
     }
 
     /// The nearest point to `q` closer than `sqrt(max_d2)`, with its squared distance.
+    ///
+    /// Depth first, the side of `q` first; the other side of a node is entered only when its
+    /// splitting line is closer than the best point found by then.
     pub fn nearest(&self, q: [f32; 2], max_d2: f32) -> Option<(&'a ScanPoint, f32)> {
         let mut best: Option<(&'a ScanPoint, f32)> = None;
         let mut best_d2 = max_d2;
-        nearest(self.points, 0, q, &mut best, &mut best_d2);
+        // (start, end, axis, squared distance from `q` to the range's side of the parent's
+        // splitting line, or `None` for the side of `q`, always entered).
+        let mut stack = [(0usize, 0usize, 0usize, None::<f32>); LEVELS];
+        stack[0] = (0, self.points.len(), 0, None);
+        let mut waiting = 1usize;
+        while let Some(&(lo, hi, axis, gap)) = waiting.checked_sub(1).and_then(|w| stack.get(w)) {
+            waiting -= 1;
+            if gap.is_some_and(|g| g.partial_cmp(&best_d2) != Some(Ordering::Less)) {
+                continue;
+            }
+            let mid = lo + (hi - lo) / 2;
+            let Some(node) = self.points.get(mid) else {
+                continue;
+            };
+            let (dx, dy) = (node.p[0] - q[0], node.p[1] - q[1]);
+            let d2 = dx * dx + dy * dy;
+            if d2 < best_d2 {
+                best_d2 = d2;
+                best = Some((node, d2));
+            }
+            let diff = if axis == 0 {
+                q[0] - node.p[0]
+            } else {
+                q[1] - node.p[1]
+            };
+            let (left, right) = ((lo, mid), (mid + 1, hi));
+            let (near, far) = if diff < 0.0 {
+                (left, right)
+            } else {
+                (right, left)
+            };
+            // The far side waits below the near one, to be checked once the near is done.
+            for (range, gap) in [(far, Some(diff * diff)), (near, None)] {
+                if range.1 > range.0 {
+                    // Never full (see the module doc).
+                    if let Some(slot) = stack.get_mut(waiting) {
+                        *slot = (range.0, range.1, axis ^ 1, gap);
+                        waiting += 1;
+                    }
+                }
+            }
+        }
         best
-    }
-}
-
-fn nearest<'a>(
-    pts: &'a [ScanPoint],
-    axis: usize,
-    q: [f32; 2],
-    best: &mut Option<(&'a ScanPoint, f32)>,
-    best_d2: &mut f32,
-) {
-    let Some((left, rest)) = pts.split_at_checked(pts.len() / 2) else {
-        return;
-    };
-    let Some((node, right)) = rest.split_first() else {
-        return;
-    };
-    let (dx, dy) = (node.p[0] - q[0], node.p[1] - q[1]);
-    let d2 = dx * dx + dy * dy;
-    if d2 < *best_d2 {
-        *best_d2 = d2;
-        *best = Some((node, d2));
-    }
-    let diff = if axis == 0 {
-        q[0] - node.p[0]
-    } else {
-        q[1] - node.p[1]
-    };
-    let (near, far) = if diff < 0.0 {
-        (left, right)
-    } else {
-        (right, left)
-    };
-    if !near.is_empty() {
-        nearest(near, axis ^ 1, q, best, best_d2);
-    }
-    if !far.is_empty() && diff * diff < *best_d2 {
-        nearest(far, axis ^ 1, q, best, best_d2);
     }
 }
 
