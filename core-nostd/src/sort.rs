@@ -77,8 +77,12 @@ fn depth_budget(len: usize) -> u32 {
 }
 
 fn introsort<T>(v: &mut [T], less: &mut impl FnMut(&T, &T) -> bool) {
-    let mut stack = [(0usize, 0usize, 0u32); STACK];
-    let mut waiting = 0usize;
+    if v.len() <= INSERTION_MAX {
+        insertion(v, less);
+        return;
+    }
+    // Uninitialized storage: nothing to clear on every call.
+    let mut stack = heapless::Vec::<(usize, usize, u32), STACK>::new();
     let (mut lo, mut hi) = (0, v.len());
     let mut budget = depth_budget(hi);
     loop {
@@ -95,26 +99,19 @@ fn introsort<T>(v: &mut [T], less: &mut impl FnMut(&T, &T) -> bool) {
                 } else {
                     ((p + 1, hi), (lo, p))
                 };
-                match stack.get_mut(waiting) {
-                    Some(slot) => {
-                        *slot = (large.0, large.1, budget);
-                        waiting += 1;
-                    }
+                if stack.push((large.0, large.1, budget)).is_err() {
                     // Cannot happen (see the module doc); sorting the part now stays correct.
-                    None => {
-                        if let Some(part) = v.get_mut(large.0..large.1) {
-                            heap(part, less);
-                        }
+                    if let Some(part) = v.get_mut(large.0..large.1) {
+                        heap(part, less);
                     }
                 }
                 (lo, hi) = small;
                 continue;
             }
         }
-        let Some(&next) = waiting.checked_sub(1).and_then(|w| stack.get(w)) else {
+        let Some(next) = stack.pop() else {
             return;
         };
-        waiting -= 1;
         (lo, hi, budget) = next;
     }
 }

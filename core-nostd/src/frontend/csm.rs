@@ -389,23 +389,20 @@ const FRONTIER: usize = 3 * MAX_LEVELS + 1;
 /// descent needs no recursion: the last pushed is visited first.
 #[derive(Debug)]
 pub(crate) struct Frontier {
-    items: [Candidate; FRONTIER],
-    len: usize,
+    items: heapless::Vec<Candidate, FRONTIER>,
 }
 
 impl Frontier {
     /// A frontier holding the root candidate only.
     pub(crate) fn new(root: Candidate) -> Self {
-        let mut items = [(0, 0, 0, 0); FRONTIER];
-        items[0] = root;
-        Frontier { items, len: 1 }
+        Frontier {
+            items: heapless::Vec::from_array([root]),
+        }
     }
 
     /// The next candidate to visit.
     pub(crate) fn pop(&mut self) -> Option<Candidate> {
-        let top = self.len.checked_sub(1)?;
-        self.len = top;
-        self.items.get(top).copied()
+        self.items.pop()
     }
 
     /// Queues the `children` (best first, as [`children`] gives them) of a candidate, at level
@@ -413,9 +410,8 @@ impl Frontier {
     /// frontier (see [`FRONTIER`]).
     pub(crate) fn push_children(&mut self, k: usize, children: &[(u32, i32, i32)]) {
         for &(b, x, y) in children.iter().rev() {
-            if let Some(slot) = self.items.get_mut(self.len) {
-                *slot = (b, k, x, y);
-                self.len += 1;
+            if self.items.push((b, k, x, y)).is_err() {
+                return;
             }
         }
     }

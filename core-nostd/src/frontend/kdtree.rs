@@ -36,23 +36,18 @@ fn axis_order(axis: usize, a: &ScanPoint, b: &ScanPoint) -> Ordering {
 
 fn build(points: &mut [ScanPoint]) {
     // (start, end, axis) of the ranges still to arrange.
-    let mut stack = [(0usize, 0usize, 0usize); LEVELS];
-    stack[0] = (0, points.len(), 0);
-    let mut waiting = 1usize;
-    while let Some(&(lo, hi, axis)) = waiting.checked_sub(1).and_then(|w| stack.get(w)) {
-        waiting -= 1;
+    let mut stack = heapless::Vec::<(usize, usize, usize), LEVELS>::new();
+    let mut next = Some((0, points.len(), 0));
+    while let Some((lo, hi, axis)) = next.take().or_else(|| stack.pop()) {
         let Some(range) = points.get_mut(lo..hi) else {
             continue;
         };
         let mid = range.len() / 2;
         select_nth_by(range, mid, |a, b| axis_order(axis, a, b));
         for (s, e) in [(lo, lo + mid), (lo + mid + 1, hi)] {
-            if e > s + 1 {
-                // Never full (see the module doc).
-                if let Some(slot) = stack.get_mut(waiting) {
-                    *slot = (s, e, axis ^ 1);
-                    waiting += 1;
-                }
+            // Never full (see the module doc).
+            if e > s + 1 && stack.push((s, e, axis ^ 1)).is_err() {
+                break;
             }
         }
     }
@@ -86,11 +81,9 @@ impl<'a> KdTree<'a> {
         let mut best_d2 = max_d2;
         // (start, end, axis, squared distance from `q` to the range's side of the parent's
         // splitting line, or `None` for the side of `q`, always entered).
-        let mut stack = [(0usize, 0usize, 0usize, None::<f32>); LEVELS];
-        stack[0] = (0, self.points.len(), 0, None);
-        let mut waiting = 1usize;
-        while let Some(&(lo, hi, axis, gap)) = waiting.checked_sub(1).and_then(|w| stack.get(w)) {
-            waiting -= 1;
+        let mut stack = heapless::Vec::<(usize, usize, usize, Option<f32>), LEVELS>::new();
+        let mut next = Some((0, self.points.len(), 0, None));
+        while let Some((lo, hi, axis, gap)) = next.take().or_else(|| stack.pop()) {
             if gap.is_some_and(|g| g.partial_cmp(&best_d2) != Some(Ordering::Less)) {
                 continue;
             }
@@ -115,15 +108,17 @@ impl<'a> KdTree<'a> {
             } else {
                 (right, left)
             };
-            // The far side waits below the near one, to be checked once the near is done.
-            for (range, gap) in [(far, Some(diff * diff)), (near, None)] {
-                if range.1 > range.0 {
-                    // Never full (see the module doc).
-                    if let Some(slot) = stack.get_mut(waiting) {
-                        *slot = (range.0, range.1, axis ^ 1, gap);
-                        waiting += 1;
-                    }
-                }
+            // The far side waits, to be checked once the near one is done.
+            if far.1 > far.0
+                && stack
+                    .push((far.0, far.1, axis ^ 1, Some(diff * diff)))
+                    .is_err()
+            {
+                // Never full (see the module doc).
+                break;
+            }
+            if near.1 > near.0 {
+                next = Some((near.0, near.1, axis ^ 1, None));
             }
         }
         best
