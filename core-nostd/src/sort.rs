@@ -129,11 +129,12 @@ fn insertion<T>(v: &mut [T], less: &mut impl FnMut(&T, &T) -> bool) {
 
 /// Partitions `v` (at least 3 elements) around the median of its first, middle and last
 /// elements; returns the pivot's final index: everything before it is not greater, everything
-/// after it is not less.
+/// after it is not less. Scans from both ends and swaps the pairs on the wrong sides, so
+/// elements equal to the pivot split evenly instead of piling up on one side.
 fn partition<T>(v: &mut [T], less: &mut impl FnMut(&T, &T) -> bool) -> usize {
     let last = v.len() - 1;
     let mid = v.len() / 2;
-    // Order v[0] <= v[mid] <= v[last], then park the median at the end.
+    // Order v[0] <= v[mid] <= v[last], then move the median to the front.
     if less(&v[mid], &v[0]) {
         v.swap(mid, 0);
     }
@@ -143,16 +144,25 @@ fn partition<T>(v: &mut [T], less: &mut impl FnMut(&T, &T) -> bool) -> usize {
             v.swap(mid, 0);
         }
     }
-    v.swap(mid, last);
-    let mut store = 0;
-    for i in 0..last {
-        if less(&v[i], &v[last]) {
-            v.swap(i, store);
-            store += 1;
+    v.swap(0, mid);
+    // v[1..i] is not greater than the pivot v[0], v[j + 1..] not less.
+    let (mut i, mut j) = (1, last);
+    loop {
+        while i <= j && less(&v[i], &v[0]) {
+            i += 1;
         }
+        while i <= j && less(&v[0], &v[j]) {
+            j -= 1;
+        }
+        if i >= j {
+            break;
+        }
+        v.swap(i, j);
+        i += 1;
+        j -= 1;
     }
-    v.swap(store, last);
-    store
+    v.swap(0, j);
+    j
 }
 
 /// Heap sort: `O(n log n)` whatever the input.

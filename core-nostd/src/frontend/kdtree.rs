@@ -79,49 +79,52 @@ impl<'a> KdTree<'a> {
     pub fn nearest(&self, q: [f32; 2], max_d2: f32) -> Option<(&'a ScanPoint, f32)> {
         let mut best: Option<(&'a ScanPoint, f32)> = None;
         let mut best_d2 = max_d2;
-        // (start, end, axis, squared distance from `q` to the range's side of the parent's
-        // splitting line, or `None` for the side of `q`, always entered).
-        let mut stack = heapless::Vec::<(usize, usize, usize, Option<f32>), LEVELS>::new();
-        let mut next = Some((0, self.points.len(), 0, None));
-        while let Some((lo, hi, axis, gap)) = next.take().or_else(|| stack.pop()) {
-            if gap.is_some_and(|g| g.partial_cmp(&best_d2) != Some(Ordering::Less)) {
-                continue;
-            }
+        // The far sides passed on the way down: (start, end, axis, squared distance from `q`
+        // to the splitting line), entered on the way back only if that line is closer than
+        // the best point found by then.
+        let mut far_sides = heapless::Vec::<(usize, usize, usize, f32), LEVELS>::new();
+        let (mut lo, mut hi, mut axis) = (0, self.points.len(), 0);
+        loop {
             let mid = lo + (hi - lo) / 2;
-            let Some(node) = self.points.get(mid) else {
-                continue;
-            };
-            let (dx, dy) = (node.p[0] - q[0], node.p[1] - q[1]);
-            let d2 = dx * dx + dy * dy;
-            if d2 < best_d2 {
-                best_d2 = d2;
-                best = Some((node, d2));
-            }
-            let diff = if axis == 0 {
-                q[0] - node.p[0]
-            } else {
-                q[1] - node.p[1]
-            };
-            let (left, right) = ((lo, mid), (mid + 1, hi));
-            let (near, far) = if diff < 0.0 {
-                (left, right)
-            } else {
-                (right, left)
-            };
-            // The far side waits, to be checked once the near one is done.
-            if far.1 > far.0
-                && stack
-                    .push((far.0, far.1, axis ^ 1, Some(diff * diff)))
-                    .is_err()
-            {
+            if let (true, Some(node)) = (lo < hi, self.points.get(mid)) {
+                let (dx, dy) = (node.p[0] - q[0], node.p[1] - q[1]);
+                let d2 = dx * dx + dy * dy;
+                if d2 < best_d2 {
+                    best_d2 = d2;
+                    best = Some((node, d2));
+                }
+                let diff = if axis == 0 {
+                    q[0] - node.p[0]
+                } else {
+                    q[1] - node.p[1]
+                };
+                let (near, far) = if diff < 0.0 {
+                    ((lo, mid), (mid + 1, hi))
+                } else {
+                    ((mid + 1, hi), (lo, mid))
+                };
                 // Never full (see the module doc).
-                break;
+                if far.1 > far.0
+                    && far_sides
+                        .push((far.0, far.1, axis ^ 1, diff * diff))
+                        .is_err()
+                {
+                    return best;
+                }
+                (lo, hi, axis) = (near.0, near.1, axis ^ 1);
+                continue;
             }
-            if near.1 > near.0 {
-                next = Some((near.0, near.1, axis ^ 1, None));
+            // Back up to the deepest far side still worth entering.
+            loop {
+                let Some((l, h, a, gap)) = far_sides.pop() else {
+                    return best;
+                };
+                if gap < best_d2 {
+                    (lo, hi, axis) = (l, h, a);
+                    break;
+                }
             }
         }
-        best
     }
 }
 
