@@ -1,0 +1,14 @@
+//! The visual front-end of the paper's section III-B.1: what turns a camera frame into 2D
+//! features that the visual odometry can relate to 3D points, `p_k = pi(M_k, P_{k-1})`.
+//!
+//! One job per file:
+//! * [`camera`]: the projection `pi` (pinhole and Kannala-Brandt KB4), its inverse and its
+//!   Jacobian, and the camera's mounting on the robot.
+//!
+//! Everything works on borrowed or fixed-capacity storage: nothing allocates, nothing recurses,
+//! nothing reads a clock, and no input makes it panic. Pixels are `f32`, geometry `f64`, and
+//! every transcendental function comes from `libm`, so the Cortex-A9 and x86-64 agree.
+
+pub mod camera;
+
+pub use camera::{CameraError, CameraExtrinsic, CameraModel, Intrinsics, Kb4, Pinhole};
