@@ -7,17 +7,20 @@
 //! * [`image`]: the borrowed grey image every stage reads, and the smoothing the descriptor
 //!   needs.
 //! * [`pyramid`]: levels of halving resolution over caller-provided bytes.
+//! * [`brief`]: the rotated 256-bit binary descriptor and its Hamming distance.
 //! * [`fast`]: FAST-9 corners, spread by a grid with a low-feature fallback, and oriented.
 //!
 //! Everything works on borrowed or fixed-capacity storage: nothing allocates, nothing recurses,
 //! nothing reads a clock, and no input makes it panic. Pixels are `f32`, geometry `f64`, and
 //! every transcendental function comes from `libm`, so the Cortex-A9 and x86-64 agree.
 
+pub mod brief;
 pub mod camera;
 pub mod fast;
 pub mod image;
 pub mod pyramid;
 
+pub use brief::{describe, describe_all, Descriptor};
 pub use camera::{CameraError, CameraExtrinsic, CameraModel, Intrinsics, Kb4, Pinhole};
 pub use fast::{detect, detect_pyramid, DetectStats, FastConfig, Keypoint};
 pub use image::{smooth_into, smoothed_bytes, GrayImage};
