@@ -6,6 +6,8 @@
 //!   Jacobian, and the camera's mounting on the robot.
 //! * [`image`]: the borrowed grey image every stage reads, and the smoothing the descriptor
 //!   needs.
+//! * [`matching`]: matching guided by the predicted pixel positions, and a brute-force
+//!   fallback keeping mutual best matches.
 //! * [`pyramid`]: levels of halving resolution over caller-provided bytes.
 //! * [`brief`]: the rotated 256-bit binary descriptor and its Hamming distance.
 //! * [`fast`]: FAST-9 corners, spread by a grid with a low-feature fallback, and oriented.
@@ -18,12 +20,14 @@ pub mod brief;
 pub mod camera;
 pub mod fast;
 pub mod image;
+pub mod matching;
 pub mod pyramid;
 
 pub use brief::{describe, describe_all, Descriptor};
 pub use camera::{CameraError, CameraExtrinsic, CameraModel, Intrinsics, Kb4, Pinhole};
 pub use fast::{detect, detect_pyramid, DetectStats, FastConfig, Keypoint};
 pub use image::{smooth_into, smoothed_bytes, GrayImage};
+pub use matching::{match_brute_force, match_guided, Match, MatchConfig, MatchStats};
 pub use pyramid::{pyramid_bytes, Pyramid, PyramidError};
 
 #[cfg(test)]
