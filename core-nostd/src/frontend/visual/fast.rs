@@ -140,6 +140,10 @@ pub struct DetectStats {
 
 /// The FAST-9 score of pixel (x, y) at threshold `t`, or `None` when it is not a corner.
 pub fn corner_score(img: &GrayImage<'_>, x: i32, y: i32, t: u8) -> Option<u32> {
+    // The whole circle must be inside; this also keeps the offsets below from overflowing.
+    if !img.contains_patch(x, y, 3) {
+        return None;
+    }
     let p = i32::from(img.at(x, y)?);
     let t = i32::from(t);
     let mut ring = [0i32; 16];
@@ -354,7 +358,10 @@ pub fn detect_pyramid(pyr: &Pyramid<'_>, cfg: &FastConfig, out: &mut [Keypoint])
         let share = if l + 1 == pyr.len() {
             capacity - total.kept
         } else {
-            (capacity * area(l)).checked_div(all).unwrap_or(0)
+            capacity
+                .saturating_mul(area(l))
+                .checked_div(all)
+                .unwrap_or(0)
         };
         let end = (total.kept + share).min(capacity);
         let Some(slice) = out.get_mut(total.kept..end) else {
@@ -372,6 +379,8 @@ pub fn detect_pyramid(pyr: &Pyramid<'_>, cfg: &FastConfig, out: &mut [Keypoint])
 
 #[cfg(test)]
 mod tests {
+    extern crate std;
+
     use super::super::synth::{Scene, View};
     use super::*;
 
@@ -432,6 +441,7 @@ mod tests {
         let mut out = [Keypoint::default(); 4];
         assert_eq!(detect(&img, 0, &FastConfig::default(), &mut out).kept, 0);
         assert_eq!(corner_score(&img, -5, 1, 10), None);
+        assert_eq!(corner_score(&img, i32::MAX, i32::MIN, 10), None);
         assert_eq!(orientation(&img, 1, 1), None);
     }
 
@@ -472,6 +482,34 @@ mod tests {
         let mut small = [Keypoint::default(); 10];
         let s = detect(&img, 0, &cfg, &mut small);
         assert_eq!((s.kept, s.dropped), (10, stats.kept - 10));
+    }
+
+    #[test]
+    fn every_level_gets_its_share_and_positions_come_back_to_level_0() {
+        use super::super::pyramid::pyramid_bytes;
+        // Squares of 24 px: their corners survive halving.
+        let scene = Scene::single([128.5, 96.5], [60.0, 45.0], 210.0, 50.0);
+        let data = scene.render(&View::new(W, H, 0.0, [0.0, 0.0]));
+        let img = GrayImage::new_checked(W, H, W, &data).unwrap();
+        let mut store = [0u8; pyramid_bytes(W, H, 2)];
+        let pyr = Pyramid::build(img, 2, &mut store).unwrap();
+        let mut out = [Keypoint::default(); 20];
+        let cfg = FastConfig {
+            per_cell: 1,
+            ..FastConfig::default()
+        };
+        let stats = detect_pyramid(&pyr, &cfg, &mut out);
+        let kps = &out[..stats.kept];
+        // Level 0 gets 4/5 of the output, level 1 the rest.
+        assert!(kps.iter().filter(|k| k.level == 0).count() == 4, "{kps:?}");
+        let coarse: std::vec::Vec<_> = kps.iter().filter(|k| k.level == 1).collect();
+        assert_eq!(coarse.len(), 4, "{kps:?}");
+        // The square's inside spans level-0 pixels 69..=188 and 52..=141.
+        for k in coarse {
+            let p = k.position();
+            let near = |v: f32, a: f32, b: f32| (v - a).abs() <= 2.5 || (v - b).abs() <= 2.5;
+            assert!(near(p[0], 69.0, 188.0) && near(p[1], 52.0, 141.0), "{p:?}");
+        }
     }
 
     #[test]
