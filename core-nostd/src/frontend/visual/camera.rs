@@ -33,6 +33,9 @@ const MIN_DEPTH: f64 = 1e-9;
 const NEWTON_MAX_ITERS: usize = 12;
 /// Newton stops when the step is below this (radians).
 const NEWTON_TOL: f64 = 1e-12;
+/// Below this ratio `r / |z|` a KB4 Jacobian uses the on-axis (pinhole) form, which avoids
+/// the cancellation in `d'(theta) theta_r r - d(theta)` over `r^2`.
+const AXIS_EPS: f64 = 1e-7;
 /// Samples of `d'(theta)` checked when a KB4 model is built.
 const MONOTONE_SAMPLES: usize = 64;
 
@@ -131,21 +134,25 @@ impl Pinhole {
     }
 
     fn jacobian(&self, p: &Vector3<f64>) -> Option<Matrix2x3<f64>> {
-        let in_front = p.z > MIN_DEPTH;
-        if !in_front {
-            return None;
-        }
-        let iz = 1.0 / p.z;
-        let (fx, fy) = (self.k.fx, self.k.fy);
-        Some(Matrix2x3::new(
-            fx * iz,
-            0.0,
-            -fx * p.x * iz * iz,
-            0.0,
-            fy * iz,
-            -fy * p.y * iz * iz,
-        ))
+        pinhole_jacobian(&self.k, p)
     }
+}
+
+/// The derivative of `(fx x / z + cx, fy y / z + cy)`, or `None` when `z` is not positive.
+fn pinhole_jacobian(k: &Intrinsics, p: &Vector3<f64>) -> Option<Matrix2x3<f64>> {
+    let in_front = p.z > MIN_DEPTH;
+    if !in_front {
+        return None;
+    }
+    let iz = 1.0 / p.z;
+    Some(Matrix2x3::new(
+        k.fx * iz,
+        0.0,
+        -k.fx * p.x * iz * iz,
+        0.0,
+        k.fy * iz,
+        -k.fy * p.y * iz * iz,
+    ))
 }
 
 /// The Kannala-Brandt equidistant fisheye model with four distortion terms.
@@ -269,30 +276,18 @@ impl Kb4 {
         if !valid {
             return None;
         }
-        let (fx, fy) = (self.k.fx, self.k.fy);
-        let off_axis = r > 1e-7 * p.z.abs();
+        let off_axis = r > AXIS_EPS * p.z.abs();
         if !off_axis {
             // On the axis the model is the pinhole one to first order (d'(0) = 1).
-            let in_front = p.z > MIN_DEPTH;
-            if !in_front {
-                return None;
-            }
-            let iz = 1.0 / p.z;
-            return Some(Matrix2x3::new(
-                fx * iz,
-                0.0,
-                -fx * p.x * iz * iz,
-                0.0,
-                fy * iz,
-                -fy * p.y * iz * iz,
-            ));
+            return pinhole_jacobian(&self.k, p);
         }
+        let (fx, fy) = (self.k.fx, self.k.fy);
         let (d, dd) = self.distort(theta);
         let rho2 = r2 + p.z * p.z;
         // s = d(theta(r, z)) / r, the factor in u = fx s x + cx.
         let s = d / r;
         let ds_dr = (dd * p.z / rho2 * r - d) / r2;
-        let ds_dz = dd * (-r / rho2) / r;
+        let ds_dz = -dd / rho2;
         let ds = Vector3::new(ds_dr * p.x / r, ds_dr * p.y / r, ds_dz);
         let mut j = Matrix2x3::zeros();
         j.set_row(0, &(ds.transpose() * (fx * p.x)));
@@ -530,6 +525,29 @@ mod tests {
             Kb4::new_checked(intr(), [-0.5, 0.0, 0.0, 0.0], 1.5),
             Err(CameraError::NotMonotone)
         );
+    }
+
+    #[test]
+    fn a_190_degree_fisheye_works_to_its_edge() {
+        // A 320 x 240 fisheye of focal 320 / 3.4 px covering 95 degrees off the axis.
+        let k = Intrinsics {
+            fx: 320.0 / 3.4,
+            fy: 320.0 / 3.4,
+            cx: 159.5,
+            cy: 119.5,
+        };
+        let theta_max = 95f64.to_radians();
+        let cam =
+            CameraModel::Kb4(Kb4::new_checked(k, [0.02, -0.004, 0.0006, 0.0], theta_max).unwrap());
+        // A point 94 degrees off the axis (slightly behind the image plane) round-trips.
+        let a = 94f64.to_radians();
+        let p = Vector3::new(a.sin(), 0.0, a.cos());
+        let px = cam.project(&p).unwrap();
+        assert!(px.x > 300.0);
+        let ray = cam.unproject(&px).unwrap();
+        assert!((ray - p).norm() < 1e-9);
+        let num = numeric_jacobian(&cam, &p);
+        assert!((cam.jacobian(&p).unwrap() - num).abs().max() < 1e-4);
     }
 
     #[test]
