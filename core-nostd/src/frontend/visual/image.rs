@@ -63,6 +63,9 @@ impl<'a> GrayImage<'a> {
     /// [`ImageError::BufferTooSmall`] when `storage` cannot hold the frame.
     pub fn from_sensor(view: &ImageView<'_>, storage: &'a mut [u8]) -> Result<Self, ImageError> {
         let (w, h) = (view.width(), view.height());
+        if w == 0 || h == 0 {
+            return Err(ImageError::ZeroSize);
+        }
         let needed = w.saturating_mul(h);
         let got = storage.len();
         let dst = storage
