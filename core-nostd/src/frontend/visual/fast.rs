@@ -144,9 +144,19 @@ pub fn corner_score(img: &GrayImage<'_>, x: i32, y: i32, t: u8) -> Option<u32> {
     if !img.contains_patch(x, y, 3) {
         return None;
     }
-    let p = i32::from(img.at(x, y)?);
+    let data = img.data();
+    let stride = isize::try_from(img.stride()).ok()?;
+    let base = usize::try_from(y)
+        .ok()?
+        .checked_mul(img.stride())?
+        .checked_add(usize::try_from(x).ok()?)?;
+    let p = i32::from(*data.get(base)?);
     let t = i32::from(t);
-    let read = |(dx, dy): (i8, i8)| img.at(x + i32::from(dx), y + i32::from(dy)).map(i32::from);
+    let read = |(dx, dy): (i8, i8)| {
+        let offset = isize::from(dy).checked_mul(stride)? + isize::from(dx);
+        data.get(base.checked_add_signed(offset)?)
+            .map(|&v| i32::from(v))
+    };
     // Any arc of 9 covers at least two of the four compass pixels (0, 4, 8, 12): reading
     // those first rejects most pixels after four reads.
     let (mut bright4, mut dark4) = (0, 0);
@@ -219,11 +229,15 @@ pub fn orientation(img: &GrayImage<'_>, x: i32, y: i32) -> Option<f32> {
     let (mut m10, mut m01) = (0i32, 0i32);
     for dy in -PATCH_RADIUS..=PATCH_RADIUS {
         let half = *DISK_HALF_WIDTH.get(dy.unsigned_abs() as usize)?;
-        for dx in -half..=half {
-            let v = i32::from(img.at(x + dx, y + dy)?);
-            m10 += dx * v;
-            m01 += dy * v;
+        let row = img.row(usize::try_from(y + dy).ok()?)?;
+        let from = usize::try_from(x - half).ok()?;
+        let to = usize::try_from(x + half).ok()?;
+        let mut row_sum = 0;
+        for (dx, &v) in (-half..=half).zip(row.get(from..=to)?) {
+            m10 += dx * i32::from(v);
+            row_sum += i32::from(v);
         }
+        m01 += dy * row_sum;
     }
     Some(libm::atan2f(m01 as f32, m10 as f32))
 }

@@ -94,6 +94,11 @@ impl<'a> GrayImage<'a> {
         self.stride
     }
 
+    /// The underlying bytes: pixel (x, y) is at `y * stride + x`.
+    pub fn data(&self) -> &'a [u8] {
+        self.data
+    }
+
     /// The pixels of row `y` (without padding), or `None` past the last row.
     pub fn row(&self, y: usize) -> Option<&'a [u8]> {
         if y >= self.height {
@@ -105,10 +110,11 @@ impl<'a> GrayImage<'a> {
 
     /// Pixel (x, y), or `None` outside the image.
     pub fn get(&self, x: usize, y: usize) -> Option<u8> {
-        if x >= self.width {
+        if x >= self.width || y >= self.height {
             return None;
         }
-        self.row(y)?.get(x).copied()
+        // In range: y * stride + x < (height - 1) * stride + width <= data.len().
+        self.data.get(y * self.stride + x).copied()
     }
 
     /// Pixel (x, y) for signed coordinates, or `None` outside the image.
