@@ -298,8 +298,11 @@ mod tests {
 
     /// Level-0 keypoints and descriptors of one view.
     fn features(scene: &Scene, view: &View) -> (Vec<Keypoint>, Vec<Descriptor>) {
-        let data = scene.render(view);
-        let img = GrayImage::new_checked(W, H, W, &data).unwrap();
+        features_of(&scene.render(view))
+    }
+
+    fn features_of(data: &[u8]) -> (Vec<Keypoint>, Vec<Descriptor>) {
+        let img = GrayImage::new_checked(W, H, W, data).unwrap();
         let mut kps = [Keypoint::default(); 300];
         let n = detect(&img, 0, &FastConfig::default(), &mut kps).kept;
         let mut buf = std::vec![0u8; W * H];
@@ -383,5 +386,31 @@ mod tests {
         let good = inliers(&a, &b, &ka, &kb, ms);
         assert!(ms.len() >= 30, "{s:?}");
         assert!(good * 20 >= ms.len() * 19, "{good} of {}", ms.len());
+    }
+
+    #[test]
+    fn a_darker_noisy_exposure_still_matches() {
+        use super::super::synth::Rng;
+        let scene = Scene::random(41, W, H, 120);
+        let a = View::new(W, H, 0.0, [0.0, 0.0]);
+        let b = View::new(W, H, 0.2, [-6.0, 4.0]);
+        let (ka, da) = features(&scene, &a);
+        // Gain 0.6 and an offset (an auto-exposure step), then noise of +-4 grey levels.
+        let mut rng = Rng::new(43);
+        let dark: Vec<u8> = scene
+            .render(&b)
+            .iter()
+            .map(|&v| {
+                let noisy = 0.6 * f32::from(v) + 12.0 + rng.uniform(-4.0, 4.0);
+                noisy.round().clamp(0.0, 255.0) as u8
+            })
+            .collect();
+        let (kb, db) = features_of(&dark);
+        let mut out = [Match::default(); 300];
+        let s = match_brute_force(&da, &db, &MatchConfig::default(), &mut out);
+        let ms = &out[..s.matched];
+        let good = inliers(&a, &b, &ka, &kb, ms);
+        assert!(ms.len() >= 25, "{s:?}");
+        assert!(good * 100 >= ms.len() * 85, "{good} of {}", ms.len());
     }
 }

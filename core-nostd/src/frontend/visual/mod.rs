@@ -32,3 +32,17 @@ pub use pyramid::{pyramid_bytes, Pyramid, PyramidError};
 
 #[cfg(test)]
 mod synth;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What each feature costs, for the landmark and descriptor pools to come.
+    #[test]
+    fn feature_sizes() {
+        assert_eq!(size_of::<Keypoint>(), 20);
+        assert_eq!(size_of::<Descriptor>(), 32);
+        // Two indices and a distance, padded to the index size.
+        assert_eq!(size_of::<Match>(), 3 * size_of::<usize>());
+    }
+}
