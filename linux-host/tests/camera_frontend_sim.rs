@@ -7,7 +7,7 @@
 //! the next frame or one 0.5 s later. A match is correct when the world point that A's pixel
 //! sees (its ray from the ground-truth camera pose, the robot pose composed with the
 //! extrinsic, cut by the first wall or the ceiling plane exactly as the renderer cuts it)
-//! reprojects into B within [`TOL_PX`] pixels of the level the features were found on.
+//! reprojects into B within `visual_sim::TOL_PX` pixels of the level the features were found on.
 //!
 //! Guided matching predicts where A's points fall in B from the wheel odometry the simulator
 //! produces (A's point as a landmark, moved by the odometry's relative motion), which is what
@@ -17,24 +17,13 @@
 
 mod visual_sim;
 
-use cloi_core::frontend::visual::{FastConfig, MatchConfig, Pyramid};
-use cloi_core::Se2;
+use cloi_core::frontend::visual::{FastConfig, MatchConfig};
 use cloi_sim::builtin;
 use cloi_sim::engine::SensorSet;
 use cloi_sim::world::{FaultKind, FaultSpec};
 use cloi_sim::{SimConfig, Simulation, World};
-use visual_sim::{brute_force, extract, guided, Features, Geometry, Recording};
+use visual_sim::{brute_force, extract, guided, Features, Geometry, Recording, GUIDE_RADIUS};
 
-/// Reprojection error allowed for a correct match, in pixels of the coarser of the two
-/// features' levels. A FAST corner sits on its level's pixel grid (half a pixel of rounding
-/// each side) and its response peak can move by a pixel when the view changes; the rendering
-/// noise adds well under a pixel. Three pixels covers both with margin, and stays far below
-/// the spacing of distinct corners (the detector's grid cells are 32 px).
-const TOL_PX: f32 = 3.0;
-/// Search radius of the guided matcher around the predicted pixel, level-0 pixels. The wheel
-/// odometry drifts by millimetres over 0.1-0.5 s; at 1-2 m from the camera that is a pixel or
-/// two; the radius covers the level-3 rounding (8 px) with margin.
-const GUIDE_RADIUS: f32 = 16.0;
 /// Simulated seconds: 40 frames at 10 Hz.
 const DURATION: f64 = 4.0;
 /// Frames between the two views of the wide pairs (0.5 s at 10 Hz).
@@ -72,31 +61,6 @@ struct Report {
     cells: usize,
     brute: [Tally; 2],
     guided: [Tally; 2],
-}
-
-/// Whether match `(ia, ib)` of features `a` (seen from `pa`) and `b` (seen from `pb`) is
-/// geometrically correct.
-fn correct(
-    g: &Geometry<'_>,
-    pa: &Se2,
-    pb: &Se2,
-    a: &Features,
-    b: &Features,
-    ia: usize,
-    ib: usize,
-) -> bool {
-    let (Some(ka), Some(kb)) = (a.keypoints.get(ia), b.keypoints.get(ib)) else {
-        return false;
-    };
-    let Some((p, _)) = g.world_point(pa, a.positions[ia]) else {
-        return false;
-    };
-    let Some(px) = g.project(pb, &p) else {
-        return false;
-    };
-    let tol = TOL_PX * Pyramid::scale(usize::from(ka.level.max(kb.level)));
-    let q = b.positions[ib];
-    (px[0] - q[0]).hypot(px[1] - q[1]) <= tol
 }
 
 /// Simulates [`DURATION`] seconds of `world` with one camera, applying `world`'s faults.
@@ -154,15 +118,7 @@ fn measure(sim: &Simulation, rec: &Recording) -> Report {
                 .map(|(oa, ob)| oa.between(&ob))
                 .expect("odometry over the run");
             let predicted_b = pa.compose(&odo);
-            let predicted: Vec<[f32; 2]> = a
-                .positions
-                .iter()
-                .map(|&px| {
-                    g.world_point(&pa, px)
-                        .and_then(|(p, _)| g.project(&predicted_b, &p))
-                        .unwrap_or([f32::MAX, f32::MAX])
-                })
-                .collect();
+            let predicted = g.predict(&pa, &predicted_b, a);
             for (tally, matches) in [
                 (&mut r.brute[kind], brute_force(a, b, &mcfg)),
                 (
@@ -174,7 +130,7 @@ fn measure(sim: &Simulation, rec: &Recording) -> Report {
                 tally.matches += matches.len();
                 tally.inliers += matches
                     .iter()
-                    .filter(|m| correct(&g, &pa, &pb, a, b, m.query, m.train))
+                    .filter(|m| g.is_correct(&pa, &pb, a, b, m))
                     .count();
             }
         }
@@ -238,6 +194,9 @@ fn a_plain_dim_ceiling_gives_fewer_features_but_no_wrong_guided_matches() {
 }
 
 /// A dirty lens over the whole run (the simulator's fault: blur, lower contrast, smudges).
+/// Few features survive it (under 10 per frame, the paper's low-feature failure level of a
+/// single camera); what the front-end still matches must be right, so the visual odometry can
+/// weigh a few good points against the wheel prior instead of being pulled off by bad ones.
 #[test]
 fn a_dirty_lens_keeps_guided_matches_right() {
     let mut world = home();

@@ -24,6 +24,16 @@ use nalgebra::{Vector2, Vector3};
 pub const LEVELS: usize = 4;
 /// Keypoints kept per frame, all levels together.
 pub const MAX_FEATURES: usize = 500;
+/// Reprojection error allowed for a correct match, in pixels of the coarser of the two
+/// features' levels. A FAST corner sits on its level's pixel grid (half a pixel of rounding
+/// each side) and its response peak can move by a pixel when the view changes; the rendering
+/// noise adds well under a pixel. Three pixels covers both with margin, and stays far below
+/// the spacing of distinct corners (the detector's grid cells are 32 px).
+pub const TOL_PX: f32 = 3.0;
+/// Search radius of the guided matcher around the predicted pixel, level-0 pixels. The wheel
+/// odometry drifts by millimetres over 0.1-0.5 s; at 1-2 m from the camera that is a pixel or
+/// two; the radius covers the level-3 rounding (8 px) with margin.
+pub const GUIDE_RADIUS: f32 = 16.0;
 
 /// One camera frame of the simulated stream, with its capture time.
 #[derive(Debug)]
@@ -238,6 +248,40 @@ impl Geometry<'_> {
             Vector3::new(o.x + dir[0] * s, o.y + dir[1] * s, o.z + slope * s),
             surface,
         ))
+    }
+
+    /// Where the points that `a`'s features see from `pose_a` fall in a frame taken from
+    /// `pose_b` (`f32::MAX` where they leave the view): A's points as landmarks, reprojected
+    /// with a predicted pose, as the visual odometry will do it.
+    pub fn predict(&self, pose_a: &Se2, pose_b: &Se2, a: &Features) -> Vec<[f32; 2]> {
+        a.positions
+            .iter()
+            .map(|&px| {
+                self.world_point(pose_a, px)
+                    .and_then(|(p, _)| self.project(pose_b, &p))
+                    .unwrap_or([f32::MAX, f32::MAX])
+            })
+            .collect()
+    }
+
+    /// Whether match `m` of features `a` (seen from `pa`) and `b` (seen from `pb`) is
+    /// geometrically correct: the point A's feature sees reprojects within [`TOL_PX`] pixels
+    /// (of the coarser of the two features' levels) of B's feature.
+    pub fn is_correct(&self, pa: &Se2, pb: &Se2, a: &Features, b: &Features, m: &Match) -> bool {
+        let (Some(ka), Some(kb)) = (a.keypoints.get(m.query), b.keypoints.get(m.train)) else {
+            return false;
+        };
+        let (Some(&pxa), Some(&q)) = (a.positions.get(m.query), b.positions.get(m.train)) else {
+            return false;
+        };
+        let Some(px) = self
+            .world_point(pa, pxa)
+            .and_then(|(p, _)| self.project(pb, &p))
+        else {
+            return false;
+        };
+        let tol = TOL_PX * Pyramid::scale(usize::from(ka.level.max(kb.level)));
+        (px[0] - q[0]).hypot(px[1] - q[1]) <= tol
     }
 
     /// The pixel of world point `p` seen from `pose`, or `None` outside the lens's field.
