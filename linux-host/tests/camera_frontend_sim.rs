@@ -20,7 +20,7 @@ mod visual_sim;
 use cloi_core::frontend::visual::{FastConfig, MatchConfig};
 use cloi_sim::builtin;
 use cloi_sim::engine::SensorSet;
-use cloi_sim::world::{FaultKind, FaultSpec};
+use cloi_sim::world::{FaultKind, FaultSpec, LegSpec, RouteSpec, WorldFile};
 use cloi_sim::{SimConfig, Simulation, World};
 use visual_sim::{brute_force, extract, guided, Features, Geometry, Recording, GUIDE_RADIUS};
 
@@ -59,6 +59,9 @@ struct Report {
     features_median: usize,
     relaxed_cells: usize,
     cells: usize,
+    /// The largest ground-truth translation (m) and turn (rad) between the frames of a wide
+    /// pair.
+    wide_motion: [f64; 2],
     brute: [Tally; 2],
     guided: [Tally; 2],
 }
@@ -76,11 +79,23 @@ fn simulate(world: World) -> (Simulation, Recording) {
     (sim, rec)
 }
 
-/// The home world with no scheduled fault.
-fn home() -> World {
-    let mut world = World::from_file(&builtin::builtin("home", DURATION).expect("home"));
+/// `file` with no scheduled fault, driven along a route that both translates and turns
+/// within [`DURATION`]: 0.4 m along the corridor, a 90-degree turn, then on.
+fn short_route(file: &WorldFile) -> World {
+    let mut world = World::from_file(file);
     world.faults.clear();
+    world.route = RouteSpec {
+        start: [2.0, 8.0],
+        legs: vec![LegSpec::Waypoints {
+            points: vec![[2.4, 8.0], [2.4, 9.0]],
+        }],
+    };
     world
+}
+
+/// The home world on the short route.
+fn home() -> World {
+    short_route(&builtin::builtin("home", DURATION).expect("home"))
 }
 
 /// Extracts every frame of `rec` and matches the pairs `(k, k + 1)` and `(k, k + WIDE)` for
@@ -118,6 +133,11 @@ fn measure(sim: &Simulation, rec: &Recording) -> Report {
                 .map(|(oa, ob)| oa.between(&ob))
                 .expect("odometry over the run");
             let predicted_b = pa.compose(&odo);
+            if kind == 1 {
+                let d = pa.between(&pb);
+                r.wide_motion[0] = r.wide_motion[0].max(d.x.hypot(d.y));
+                r.wide_motion[1] = r.wide_motion[1].max(d.theta.abs());
+            }
             let predicted = g.predict(&pa, &predicted_b, a);
             for (tally, matches) in [
                 (&mut r.brute[kind], brute_force(a, b, &mcfg)),
@@ -136,8 +156,15 @@ fn measure(sim: &Simulation, rec: &Recording) -> Report {
         }
     }
     eprintln!(
-        "{} frames, features min {} median {}, relaxed cells {}/{}",
-        r.frames, r.features_min, r.features_median, r.relaxed_cells, r.cells
+        "{} frames, features min {} median {}, relaxed cells {}/{}, wide pairs up to {:.2} m \
+         and {:.2} rad apart",
+        r.frames,
+        r.features_min,
+        r.features_median,
+        r.relaxed_cells,
+        r.cells,
+        r.wide_motion[0],
+        r.wide_motion[1]
     );
     for (name, t) in [
         ("brute, consecutive", r.brute[0]),
@@ -161,6 +188,9 @@ fn home_ceiling_features_match_with_ground_truth() {
     let (sim, rec) = simulate(home());
     let r = measure(&sim, &rec);
     assert!(r.frames >= 38, "{r:?}");
+    // The wide pairs span real motion: the cleaner cruises at 0.3 m/s and turns at 1 rad/s,
+    // so 0.5 s is 0.15 m on the straight and 0.5 rad in the turn.
+    assert!(r.wide_motion[0] >= 0.1 && r.wide_motion[1] >= 0.3, "{r:?}");
     // The paper's ORB-SLAM3 fails at 20 features or fewer (its plain airport ceiling); a
     // textured home ceiling must give at least twice that in every frame.
     assert!(r.features_min >= 40, "{r:?}");
@@ -183,9 +213,7 @@ fn a_plain_dim_ceiling_gives_fewer_features_but_no_wrong_guided_matches() {
     file.features.clear();
     file.ceiling.texture = 0.0;
     file.ceiling.brightness = 0.3;
-    let mut world = World::from_file(&file);
-    world.faults.clear();
-    let (sim, rec) = simulate(world);
+    let (sim, rec) = simulate(short_route(&file));
     let r = measure(&sim, &rec);
     assert!(r.frames >= 38, "{r:?}");
     // Where the ceiling is blank, cells fall back to the lower threshold.
