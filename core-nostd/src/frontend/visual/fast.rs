@@ -17,7 +17,12 @@
 //!   interior is cut into square cells and each keeps only its best `per_cell` corners.
 //! * **Adaptive fallback.** A cell with no corner at the threshold is scanned again at a lower
 //!   one: the paper's low-feature case (dim, plain ceilings, exposure changes) is the normal
-//!   case, so weak corners are taken where nothing better exists.
+//!   case, so weak corners are taken where nothing better exists. Only on the halved levels
+//!   by default ([`FastConfig::relax_from_level`]): the full-resolution frame carries the
+//!   sensor's whole pixel noise (a few grey levels on a cheap camera, so differences of two
+//!   pixels spread by more than the lower threshold) and a relaxed scan there finds noise,
+//!   corners that never come back; each halving averages 16 pixels with weights 1-3-3-1 and
+//!   divides independent noise by about 3, so the same threshold is safe from level 1.
 //! * **Orientation by intensity centroid.** The angle from the corner to the centroid of the
 //!   intensities in a disk of radius [`PATCH_RADIUS`] is stable under rotation of the image,
 //!   and it steers the descriptor (`brief.rs`), so a robot turning under the same ceiling still
@@ -109,6 +114,8 @@ pub struct FastConfig {
     pub cell_size: usize,
     /// Corners kept per cell, at most [`MAX_PER_CELL`].
     pub per_cell: usize,
+    /// The first pyramid level where an empty cell is scanned again at `min_threshold`.
+    pub relax_from_level: u8,
 }
 
 impl Default for FastConfig {
@@ -118,6 +125,7 @@ impl Default for FastConfig {
             min_threshold: 7,
             cell_size: 32,
             per_cell: 3,
+            relax_from_level: 1,
         }
     }
 }
@@ -324,6 +332,7 @@ pub fn detect(
     let cell = cfg.cell_size;
     let (iw, ih) = (w - 2 * BORDER, h - 2 * BORDER);
     let (nx, ny) = (iw.div_ceil(cell), ih.div_ceil(cell));
+    let relax = cfg.min_threshold < cfg.threshold && level >= cfg.relax_from_level;
     for cy in 0..ny {
         for cx in 0..nx {
             stats.cells += 1;
@@ -337,7 +346,7 @@ pub fn detect(
             ];
             let mut best = CellBest::new(cfg.per_cell);
             scan_cell(img, rect, cfg.threshold, &mut best);
-            if best.len == 0 && cfg.min_threshold < cfg.threshold {
+            if best.len == 0 && relax {
                 stats.relaxed_cells += 1;
                 scan_cell(img, rect, cfg.min_threshold, &mut best);
             }
@@ -446,7 +455,11 @@ mod tests {
             let k = k.unwrap_or_else(|| panic!("no corner near {p:?}: {kps:?}"));
             assert!((k.angle - angle).abs() < 0.1, "{k:?} vs {angle}");
         }
-        assert_eq!(stats.relaxed_cells, stats.cells - 4);
+        // Level 0 is not rescanned at the lower threshold: the other cells stay empty.
+        assert_eq!(
+            (stats.relaxed_cells, stats.empty_cells),
+            (0, stats.cells - 4)
+        );
     }
 
     #[test]
@@ -469,14 +482,23 @@ mod tests {
         // Contrast 12: below the threshold of 20, above the fallback of 7.
         let scene = Scene::single([128.5, 96.5], [40.0, 30.0], 72.0, 60.0);
         let data = scene.render(&View::new(W, H, 0.0, [0.0, 0.0]));
-        let (stats, _) = detect_all(&data, &FastConfig::default());
+        let img = GrayImage::new_checked(W, H, W, &data).unwrap();
+        let mut out = [Keypoint::default(); 400];
+        let stats = detect(&img, 1, &FastConfig::default(), &mut out);
         assert_eq!(stats.kept, 4);
         assert_eq!(stats.relaxed_cells, stats.cells);
         let strict = FastConfig {
             min_threshold: 20,
             ..FastConfig::default()
         };
-        assert_eq!(detect_all(&data, &strict).0.kept, 0);
+        assert_eq!(detect(&img, 1, &strict, &mut out).kept, 0);
+        // Level 0, with the sensor's full noise, is not relaxed unless asked.
+        assert_eq!(detect_all(&data, &FastConfig::default()).0.kept, 0);
+        let everywhere = FastConfig {
+            relax_from_level: 0,
+            ..FastConfig::default()
+        };
+        assert_eq!(detect_all(&data, &everywhere).0.kept, 4);
     }
 
     #[test]
