@@ -14,7 +14,9 @@
 //! * [`sensor`]: sensor frames lent to the core (time stamps, odometry, IMU, laser scans,
 //!   camera images) and the scan checks.
 //! * [`frontend`]: odometry fusion, scan preprocessing, occupancy-grid submaps, ICP, the
-//!   correlative loop-closure search and the keyframe decision (paper section III-B).
+//!   correlative loop-closure search and the keyframe decision (paper section III-B), and the
+//!   image front-end's building blocks (camera models, pyramid, corners, descriptors,
+//!   matching).
 //! * [`mapper`]: the LiDAR mapper assembled from all of the above: front-end, frame nodes,
 //!   loop closure, GPE with the worst-case prediction, and the back-end in bounded steps.
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.

@@ -1,6 +1,7 @@
 //! The LiDAR front-end of the paper's section III-B: odometry fusion, scan preprocessing,
 //! occupancy-grid submaps, scan matching (ICP for odometry and refinement, a correlative
-//! branch-and-bound search for loop closures) and the keyframe decision.
+//! branch-and-bound search for loop closures) and the keyframe decision; and the image
+//! front-end under [`visual`] (camera models, pyramid, corners, descriptors, matching).
 //!
 //! Every type here works on caller-provided or fixed-capacity storage; nothing allocates and
 //! nothing reads a clock. Scan points and grid cells are `f32`, poses `f64`.
@@ -16,6 +17,7 @@ pub mod lidar;
 pub mod odometry;
 pub mod pointmap;
 pub mod scan;
+pub mod visual;
 
 pub use grid::{GridParams, Submap};
 pub use icp::{align, IcpConfig, IcpResult, MatchError};

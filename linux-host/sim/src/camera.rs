@@ -18,6 +18,9 @@
 //! motion blur averages three renders spread over the exposure time. A dirty lens blurs, lowers
 //! contrast and adds dark smudges.
 
+use cloi_core::frontend::visual::{
+    CameraError, CameraExtrinsic, CameraModel, Intrinsics, Kb4, Pinhole,
+};
 use rand::RngExt;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -173,13 +176,42 @@ impl CameraParams {
                         break;
                     }
                 }
-                if !(0.0..=100f64.to_radians()).contains(&th) {
+                if !(0.0..=FISHEYE_MAX_THETA_DEG.to_radians()).contains(&th) {
                     return None;
                 }
                 let s = th.sin();
                 Some([s * mx / d, s * my / d, th.cos()])
             }
         }
+    }
+}
+
+/// The fisheye field ends this far from the optical axis (radians): pixels beyond it are black.
+pub const FISHEYE_MAX_THETA_DEG: f64 = 100.0;
+
+impl CameraParams {
+    /// The same lens as a `cloi-core` camera model, for the front-end to run on these frames.
+    ///
+    /// # Errors
+    /// [`CameraError`] when the parameters make no valid core model.
+    pub fn core_model(&self) -> Result<CameraModel, CameraError> {
+        let k = Intrinsics {
+            fx: self.fx,
+            fy: self.fy,
+            cx: self.cx,
+            cy: self.cy,
+        };
+        Ok(match self.lens {
+            Lens::Pinhole => CameraModel::Pinhole(Pinhole::new_checked(k)?),
+            Lens::KannalaBrandt(d) => {
+                CameraModel::Kb4(Kb4::new_checked(k, d, FISHEYE_MAX_THETA_DEG.to_radians())?)
+            }
+        })
+    }
+
+    /// The mounting as a `cloi-core` extrinsic (camera pose in the body frame).
+    pub fn core_extrinsic(&self) -> CameraExtrinsic {
+        CameraExtrinsic::mounted(self.mount, self.yaw, self.tilt)
     }
 }
 
@@ -538,6 +570,33 @@ mod tests {
             let ray = p.unproject(uv[0], uv[1]).expect("in view");
             let back = p.project(ray).expect("visible");
             assert!((back[0] - uv[0]).abs() < 1e-6 && (back[1] - uv[1]).abs() < 1e-6);
+        }
+    }
+
+    /// The core's models and extrinsic, built from these parameters, put every body-frame
+    /// point on the pixel the renderer uses, so the core can be tested on rendered frames.
+    #[test]
+    fn the_core_camera_agrees_with_the_renderer() {
+        for (fisheye, tilt, yaw) in [(true, 60.0, 0.0), (false, 45.0, 0.0), (true, 45.0, 180.0)] {
+            let p = CameraParams::new(320, 240, fisheye, tilt, yaw);
+            let model = p.core_model().expect("valid");
+            let ext = p.core_extrinsic();
+            let mut checked = 0;
+            for i in 0..200 {
+                let f = f64::from(i);
+                let body = [
+                    3.0 * (f * 0.37).sin() + 0.5,
+                    2.0 * (f * 0.91).cos(),
+                    2.4 - 1.5 * (f * 0.13).sin().abs(),
+                ];
+                let mine = p.project(optical_of(&p, body));
+                let core = model.project(&ext.robot_to_camera(&body.into()));
+                if let (Some(a), Some(b)) = (mine, core) {
+                    assert!((a[0] - b.x).abs() < 1e-9 && (a[1] - b.y).abs() < 1e-9);
+                    checked += 1;
+                }
+            }
+            assert!(checked > 100, "{checked}");
         }
     }
 

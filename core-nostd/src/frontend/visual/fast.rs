@@ -1,0 +1,590 @@
+//! FAST-9 corners, spread over the image by a grid, with an orientation (paper section
+//! III-B.1).
+//!
+//! The visual odometry needs 2D points that come back in the next frames. A pixel is a corner
+//! when 9 contiguous pixels of the 16 on a radius-3 circle around it are all brighter than it
+//! by more than a threshold, or all darker: a test of a few integer comparisons, which is why
+//! FAST suits the Cortex-A9 budget.
+//!
+//! Why the rest is built this way:
+//! * **Score and non-maximum suppression.** A corner's score is the summed contrast of its
+//!   circle pixels beyond the threshold; a corner is kept only when no 8-neighbour scores
+//!   higher (ties go to the earlier pixel in raster order, so a plateau keeps exactly one).
+//!   Neighbour scores are recomputed where needed instead of stored, so no score image is
+//!   allocated.
+//! * **Grid bucketing.** A ceiling is mostly plain with a few strong lights; ranked globally,
+//!   all features would sit on the lights and the pose would be poorly constrained. The
+//!   interior is cut into square cells and each keeps only its best `per_cell` corners.
+//! * **Adaptive fallback.** A cell with no corner at the threshold is scanned again at a lower
+//!   one: the paper's low-feature case (dim, plain ceilings, exposure changes) is the normal
+//!   case, so weak corners are taken where nothing better exists. Only on the halved levels
+//!   by default ([`FastConfig::relax_from_level`]): the full-resolution frame carries the
+//!   sensor's whole pixel noise (a few grey levels on a cheap camera, so differences of two
+//!   pixels spread by more than the lower threshold) and a relaxed scan there finds noise,
+//!   corners that never come back; each halving averages 16 pixels with weights 1-3-3-1 and
+//!   divides independent noise by about 3, so the same threshold is safe from level 1.
+//! * **Orientation by intensity centroid.** The angle from the corner to the centroid of the
+//!   intensities in a disk of radius [`PATCH_RADIUS`] is stable under rotation of the image,
+//!   and it steers the descriptor (`brief.rs`), so a robot turning under the same ceiling still
+//!   matches its features.
+//!
+//! Keypoints go into a caller-provided slice; the work per frame is bounded by the pixel count.
+
+use super::image::GrayImage;
+use super::pyramid::Pyramid;
+
+/// The 16 offsets of the radius-3 Bresenham circle, clockwise from the top.
+pub const CIRCLE: [(i8, i8); 16] = [
+    (0, -3),
+    (1, -3),
+    (2, -2),
+    (3, -1),
+    (3, 0),
+    (3, 1),
+    (2, 2),
+    (1, 3),
+    (0, 3),
+    (-1, 3),
+    (-2, 2),
+    (-3, 1),
+    (-3, 0),
+    (-3, -1),
+    (-2, -2),
+    (-1, -3),
+];
+/// Contiguous circle pixels a corner needs (FAST-9).
+pub const ARC: usize = 9;
+/// Radius of the disk used for the orientation and by the descriptor.
+pub const PATCH_RADIUS: i32 = 15;
+/// Pixels from the image edge where no corner is sought: the patch must fit.
+pub const BORDER: usize = PATCH_RADIUS as usize + 1;
+/// The most corners one grid cell can keep.
+pub const MAX_PER_CELL: usize = 8;
+
+/// Half-widths of the rows of the orientation disk: `floor(sqrt(R^2 - dy^2))`.
+const DISK_HALF_WIDTH: [i32; PATCH_RADIUS as usize + 1] = disk_half_widths();
+
+const fn disk_half_widths() -> [i32; PATCH_RADIUS as usize + 1] {
+    let mut out = [0; PATCH_RADIUS as usize + 1];
+    let r2 = PATCH_RADIUS * PATCH_RADIUS;
+    let mut dy = 0;
+    while dy <= PATCH_RADIUS {
+        let mut w = 0;
+        while (w + 1) * (w + 1) + dy * dy <= r2 {
+            w += 1;
+        }
+        out[dy as usize] = w;
+        dy += 1;
+    }
+    out
+}
+
+/// A detected corner.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Keypoint {
+    /// Column in the pixels of its level.
+    pub x: f32,
+    /// Row in the pixels of its level.
+    pub y: f32,
+    /// Pyramid level (0 is the frame).
+    pub level: u8,
+    /// FAST score: summed contrast beyond the threshold.
+    pub score: f32,
+    /// Orientation in radians, image axes (`x` right, `y` down).
+    pub angle: f32,
+}
+
+impl Keypoint {
+    /// The position in level-0 pixels.
+    pub fn position(&self) -> [f32; 2] {
+        Pyramid::to_level0(usize::from(self.level), [self.x, self.y])
+    }
+}
+
+/// Detection parameters.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct FastConfig {
+    /// Intensity difference a circle pixel needs to count as brighter or darker.
+    pub threshold: u8,
+    /// The lower threshold tried in a cell that has no corner at `threshold`.
+    pub min_threshold: u8,
+    /// Side of a grid cell, in pixels of the level.
+    pub cell_size: usize,
+    /// Corners kept per cell, at most [`MAX_PER_CELL`].
+    pub per_cell: usize,
+    /// The first pyramid level where an empty cell is scanned again at `min_threshold`.
+    pub relax_from_level: u8,
+}
+
+impl Default for FastConfig {
+    fn default() -> Self {
+        Self {
+            threshold: 20,
+            min_threshold: 7,
+            cell_size: 32,
+            per_cell: 3,
+            relax_from_level: 1,
+        }
+    }
+}
+
+/// What one detection did.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct DetectStats {
+    /// Keypoints written.
+    pub kept: usize,
+    /// Grid cells scanned.
+    pub cells: usize,
+    /// Cells that needed the lower threshold.
+    pub relaxed_cells: usize,
+    /// Cells without any corner, even at the lower threshold.
+    pub empty_cells: usize,
+    /// Corners dropped because the output was full.
+    pub dropped: usize,
+}
+
+/// The FAST-9 score of pixel (x, y) at threshold `t`, or `None` when it is not a corner.
+pub fn corner_score(img: &GrayImage<'_>, x: i32, y: i32, t: u8) -> Option<u32> {
+    // The whole circle must be inside; this also keeps the offsets below from overflowing.
+    if !img.contains_patch(x, y, 3) {
+        return None;
+    }
+    let data = img.data();
+    let stride = isize::try_from(img.stride()).ok()?;
+    let base = usize::try_from(y)
+        .ok()?
+        .checked_mul(img.stride())?
+        .checked_add(usize::try_from(x).ok()?)?;
+    let p = i32::from(*data.get(base)?);
+    let t = i32::from(t);
+    let read = |(dx, dy): (i8, i8)| {
+        let offset = isize::from(dy).checked_mul(stride)? + isize::from(dx);
+        data.get(base.checked_add_signed(offset)?)
+            .map(|&v| i32::from(v))
+    };
+    // Any arc of 9 covers at least two of the four compass pixels (0, 4, 8, 12): reading
+    // those first rejects most pixels after four reads.
+    let (mut bright4, mut dark4) = (0, 0);
+    for i in [0, 4, 8, 12] {
+        let v = read(*CIRCLE.get(i)?)?;
+        bright4 += usize::from(v > p + t);
+        dark4 += usize::from(v < p - t);
+    }
+    if bright4 < 2 && dark4 < 2 {
+        return None;
+    }
+    let mut ring = [0i32; 16];
+    for (v, offset) in ring.iter_mut().zip(CIRCLE) {
+        *v = read(offset)?;
+    }
+    let (mut bright, mut dark) = (0u16, 0u16);
+    let (mut sum_bright, mut sum_dark) = (0u32, 0u32);
+    for (i, &v) in ring.iter().enumerate() {
+        if v > p + t {
+            bright |= 1 << i;
+            sum_bright += (v - p - t).unsigned_abs();
+        } else if v < p - t {
+            dark |= 1 << i;
+            sum_dark += (p - t - v).unsigned_abs();
+        }
+    }
+    let score = match (has_arc(bright), has_arc(dark)) {
+        (true, true) => sum_bright.max(sum_dark),
+        (true, false) => sum_bright,
+        (false, true) => sum_dark,
+        (false, false) => return None,
+    };
+    Some(score)
+}
+
+/// Whether the 16-bit circular mask has [`ARC`] contiguous set bits.
+fn has_arc(mask: u16) -> bool {
+    let doubled = u32::from(mask) | (u32::from(mask) << 16);
+    let mut run = doubled;
+    for shift in 1..ARC {
+        run &= doubled >> shift;
+    }
+    run != 0
+}
+
+/// Whether (x, y), a corner of score `score`, is the strongest of its 8 neighbours.
+fn is_local_max(img: &GrayImage<'_>, x: i32, y: i32, t: u8, score: u32) -> bool {
+    for dy in -1..=1 {
+        for dx in -1..=1 {
+            if dx == 0 && dy == 0 {
+                continue;
+            }
+            if let Some(s) = corner_score(img, x + dx, y + dy, t) {
+                let earlier = dy < 0 || (dy == 0 && dx < 0);
+                if s > score || (s == score && earlier) {
+                    return false;
+                }
+            }
+        }
+    }
+    true
+}
+
+/// The intensity-centroid angle of the disk of radius [`PATCH_RADIUS`] around (x, y), or
+/// `None` when the disk leaves the image.
+pub fn orientation(img: &GrayImage<'_>, x: i32, y: i32) -> Option<f32> {
+    if !img.contains_patch(x, y, PATCH_RADIUS) {
+        return None;
+    }
+    let (mut m10, mut m01) = (0i32, 0i32);
+    for dy in -PATCH_RADIUS..=PATCH_RADIUS {
+        let half = *DISK_HALF_WIDTH.get(dy.unsigned_abs() as usize)?;
+        let row = img.row(usize::try_from(y + dy).ok()?)?;
+        let from = usize::try_from(x - half).ok()?;
+        let to = usize::try_from(x + half).ok()?;
+        let mut row_sum = 0;
+        for (dx, &v) in (-half..=half).zip(row.get(from..=to)?) {
+            m10 += dx * i32::from(v);
+            row_sum += i32::from(v);
+        }
+        m01 += dy * row_sum;
+    }
+    Some(libm::atan2f(m01 as f32, m10 as f32))
+}
+
+/// The best corners of one cell (at most [`MAX_PER_CELL`]), strongest first.
+#[derive(Clone, Copy, Debug)]
+struct CellBest {
+    items: [(u32, i32, i32); MAX_PER_CELL],
+    len: usize,
+    cap: usize,
+}
+
+impl CellBest {
+    fn new(cap: usize) -> Self {
+        Self {
+            items: [(0, 0, 0); MAX_PER_CELL],
+            len: 0,
+            cap: cap.min(MAX_PER_CELL),
+        }
+    }
+
+    /// Inserts a corner if it ranks among the best; equal scores keep the earlier corner first.
+    fn offer(&mut self, item: (u32, i32, i32)) {
+        let pos = self
+            .as_slice()
+            .iter()
+            .position(|p| p.0 < item.0)
+            .unwrap_or(self.len);
+        if pos >= self.cap {
+            return;
+        }
+        // Shift the weaker ones down one slot; the last falls off when the cell is full.
+        let end = self.len.min(self.cap - 1);
+        let mut i = end;
+        while i > pos {
+            if let Some(prev) = self.items.get(i - 1).copied() {
+                if let Some(slot) = self.items.get_mut(i) {
+                    *slot = prev;
+                }
+            }
+            i -= 1;
+        }
+        if let Some(slot) = self.items.get_mut(pos) {
+            *slot = item;
+        }
+        self.len = end + 1;
+    }
+
+    fn as_slice(&self) -> &[(u32, i32, i32)] {
+        self.items.get(..self.len).unwrap_or(&[])
+    }
+}
+
+/// Scans the cell `[x0, x1) x [y0, y1)` at threshold `t`.
+fn scan_cell(img: &GrayImage<'_>, rect: [i32; 4], t: u8, best: &mut CellBest) {
+    let [x0, y0, x1, y1] = rect;
+    for y in y0..y1 {
+        for x in x0..x1 {
+            if let Some(s) = corner_score(img, x, y, t) {
+                if is_local_max(img, x, y, t, s) {
+                    best.offer((s, x, y));
+                }
+            }
+        }
+    }
+}
+
+/// FAST-9 corners of one pyramid level, bucketed and oriented, written into `out`.
+///
+/// Corners are sought at least [`BORDER`] pixels from the edges. Cells are visited in raster
+/// order, each contributing its best `per_cell` corners; when `out` is full the remaining ones
+/// are counted in [`DetectStats::dropped`].
+pub fn detect(
+    img: &GrayImage<'_>,
+    level: u8,
+    cfg: &FastConfig,
+    out: &mut [Keypoint],
+) -> DetectStats {
+    let mut stats = DetectStats::default();
+    let (w, h) = (img.width(), img.height());
+    if w <= 2 * BORDER || h <= 2 * BORDER || cfg.cell_size == 0 {
+        return stats;
+    }
+    let cell = cfg.cell_size;
+    let (iw, ih) = (w - 2 * BORDER, h - 2 * BORDER);
+    let (nx, ny) = (iw.div_ceil(cell), ih.div_ceil(cell));
+    let relax = cfg.min_threshold < cfg.threshold && level >= cfg.relax_from_level;
+    for cy in 0..ny {
+        for cx in 0..nx {
+            stats.cells += 1;
+            let x0 = BORDER + cx * cell;
+            let y0 = BORDER + cy * cell;
+            let rect = [
+                x0 as i32,
+                y0 as i32,
+                (x0 + cell).min(w - BORDER) as i32,
+                (y0 + cell).min(h - BORDER) as i32,
+            ];
+            let mut best = CellBest::new(cfg.per_cell);
+            scan_cell(img, rect, cfg.threshold, &mut best);
+            if best.len == 0 && relax {
+                stats.relaxed_cells += 1;
+                scan_cell(img, rect, cfg.min_threshold, &mut best);
+            }
+            if best.len == 0 {
+                stats.empty_cells += 1;
+            }
+            for &(score, x, y) in best.as_slice() {
+                let Some(slot) = out.get_mut(stats.kept) else {
+                    stats.dropped += 1;
+                    continue;
+                };
+                *slot = Keypoint {
+                    x: x as f32,
+                    y: y as f32,
+                    level,
+                    score: score as f32,
+                    angle: orientation(img, x, y).unwrap_or(0.0),
+                };
+                stats.kept += 1;
+            }
+        }
+    }
+    stats
+}
+
+/// Corners of every level of `pyr`, each level given a share of `out` proportional to its
+/// area (so the coarse levels are not crowded out by the frame). Returns the summed stats.
+pub fn detect_pyramid(pyr: &Pyramid<'_>, cfg: &FastConfig, out: &mut [Keypoint]) -> DetectStats {
+    let mut total = DetectStats::default();
+    let area = |l: usize| pyr.level(l).map_or(0, |i| i.width() * i.height());
+    let all: usize = (0..pyr.len()).map(area).sum();
+    let capacity = out.len();
+    for l in 0..pyr.len() {
+        let (Some(img), Ok(level)) = (pyr.level(l), u8::try_from(l)) else {
+            break;
+        };
+        let share = if l + 1 == pyr.len() {
+            capacity - total.kept
+        } else {
+            capacity
+                .saturating_mul(area(l))
+                .checked_div(all)
+                .unwrap_or(0)
+        };
+        let end = (total.kept + share).min(capacity);
+        let Some(slice) = out.get_mut(total.kept..end) else {
+            break;
+        };
+        let s = detect(&img, level, cfg, slice);
+        total.kept += s.kept;
+        total.cells += s.cells;
+        total.relaxed_cells += s.relaxed_cells;
+        total.empty_cells += s.empty_cells;
+        total.dropped += s.dropped;
+    }
+    total
+}
+
+#[cfg(test)]
+mod tests {
+    extern crate std;
+
+    use super::super::synth::{Scene, View};
+    use super::*;
+
+    const W: usize = 256;
+    const H: usize = 192;
+
+    fn detect_all(data: &[u8], cfg: &FastConfig) -> (DetectStats, [Keypoint; 400]) {
+        let img = GrayImage::new_checked(W, H, W, data).unwrap();
+        let mut out = [Keypoint::default(); 400];
+        (detect(&img, 0, cfg, &mut out), out)
+    }
+
+    #[test]
+    fn the_arc_test_needs_nine_contiguous_pixels() {
+        assert!(has_arc(0b0000_0001_1111_1111));
+        assert!(has_arc(0b1111_0000_0001_1111)); // wraps around
+        assert!(!has_arc(0b0000_0001_1111_0111));
+        assert!(!has_arc(0b0101_0101_0101_0101));
+        assert!(has_arc(u16::MAX));
+    }
+
+    #[test]
+    fn a_bright_square_gives_its_four_corners_pointing_inwards() {
+        let scene = Scene::single([128.5, 96.5], [40.0, 30.0], 200.0, 60.0);
+        let data = scene.render(&View::new(W, H, 0.0, [0.0, 0.0]));
+        let cfg = FastConfig {
+            per_cell: 1,
+            ..FastConfig::default()
+        };
+        let (stats, out) = detect_all(&data, &cfg);
+        let kps = &out[..stats.kept];
+        assert_eq!(kps.len(), 4, "{kps:?}");
+        // The square spans [88.5, 168.5] x [66.5, 126.5]; inside pixels are 89..=168.
+        let want = [
+            ([89.0, 67.0], core::f32::consts::FRAC_PI_4),
+            ([168.0, 67.0], 3.0 * core::f32::consts::FRAC_PI_4),
+            ([89.0, 126.0], -core::f32::consts::FRAC_PI_4),
+            ([168.0, 126.0], -3.0 * core::f32::consts::FRAC_PI_4),
+        ];
+        for (p, angle) in want {
+            let k = kps
+                .iter()
+                .find(|k| (k.x - p[0]).abs() <= 1.5 && (k.y - p[1]).abs() <= 1.5);
+            let k = k.unwrap_or_else(|| panic!("no corner near {p:?}: {kps:?}"));
+            assert!((k.angle - angle).abs() < 0.1, "{k:?} vs {angle}");
+        }
+        // Level 0 is not rescanned at the lower threshold: the other cells stay empty.
+        assert_eq!(
+            (stats.relaxed_cells, stats.empty_cells),
+            (0, stats.cells - 4)
+        );
+    }
+
+    #[test]
+    fn plain_and_tiny_images_give_nothing_and_do_not_panic() {
+        let flat = [90u8; W * H];
+        let (stats, _) = detect_all(&flat, &FastConfig::default());
+        assert_eq!(stats.kept, 0);
+        assert_eq!(stats.empty_cells, stats.cells);
+        let tiny = [0u8, 255, 0, 255];
+        let img = GrayImage::new_checked(2, 2, 2, &tiny).unwrap();
+        let mut out = [Keypoint::default(); 4];
+        assert_eq!(detect(&img, 0, &FastConfig::default(), &mut out).kept, 0);
+        assert_eq!(corner_score(&img, -5, 1, 10), None);
+        assert_eq!(corner_score(&img, i32::MAX, i32::MIN, 10), None);
+        assert_eq!(orientation(&img, 1, 1), None);
+    }
+
+    #[test]
+    fn a_weak_corner_is_found_by_the_fallback_threshold() {
+        // Contrast 12: below the threshold of 20, above the fallback of 7.
+        let scene = Scene::single([128.5, 96.5], [40.0, 30.0], 72.0, 60.0);
+        let data = scene.render(&View::new(W, H, 0.0, [0.0, 0.0]));
+        let img = GrayImage::new_checked(W, H, W, &data).unwrap();
+        let mut out = [Keypoint::default(); 400];
+        let stats = detect(&img, 1, &FastConfig::default(), &mut out);
+        assert_eq!(stats.kept, 4);
+        assert_eq!(stats.relaxed_cells, stats.cells);
+        let strict = FastConfig {
+            min_threshold: 20,
+            ..FastConfig::default()
+        };
+        assert_eq!(detect(&img, 1, &strict, &mut out).kept, 0);
+        // Level 0, with the sensor's full noise, is not relaxed unless asked.
+        assert_eq!(detect_all(&data, &FastConfig::default()).0.kept, 0);
+        let everywhere = FastConfig {
+            relax_from_level: 0,
+            ..FastConfig::default()
+        };
+        assert_eq!(detect_all(&data, &everywhere).0.kept, 4);
+    }
+
+    #[test]
+    fn bucketing_bounds_every_cell_and_output_overflow_is_counted() {
+        let data = Scene::random(7, W, H, 120).render(&View::new(W, H, 0.0, [0.0, 0.0]));
+        let cfg = FastConfig::default();
+        let (stats, out) = detect_all(&data, &cfg);
+        assert!(stats.kept > 60, "{stats:?}");
+        for cell_y in 0..(H - 2 * BORDER).div_ceil(cfg.cell_size) {
+            for cell_x in 0..(W - 2 * BORDER).div_ceil(cfg.cell_size) {
+                let in_cell = out[..stats.kept]
+                    .iter()
+                    .filter(|k| {
+                        (k.x as usize - BORDER) / cfg.cell_size == cell_x
+                            && (k.y as usize - BORDER) / cfg.cell_size == cell_y
+                    })
+                    .count();
+                assert!(in_cell <= cfg.per_cell);
+            }
+        }
+        let img = GrayImage::new_checked(W, H, W, &data).unwrap();
+        let mut small = [Keypoint::default(); 10];
+        let s = detect(&img, 0, &cfg, &mut small);
+        assert_eq!((s.kept, s.dropped), (10, stats.kept - 10));
+    }
+
+    #[test]
+    fn every_level_gets_its_share_and_positions_come_back_to_level_0() {
+        use super::super::pyramid::pyramid_bytes;
+        // Squares of 24 px: their corners survive halving.
+        let scene = Scene::single([128.5, 96.5], [60.0, 45.0], 210.0, 50.0);
+        let data = scene.render(&View::new(W, H, 0.0, [0.0, 0.0]));
+        let img = GrayImage::new_checked(W, H, W, &data).unwrap();
+        let mut store = [0u8; pyramid_bytes(W, H, 2)];
+        let pyr = Pyramid::build(img, 2, &mut store).unwrap();
+        let mut out = [Keypoint::default(); 20];
+        let cfg = FastConfig {
+            per_cell: 1,
+            ..FastConfig::default()
+        };
+        let stats = detect_pyramid(&pyr, &cfg, &mut out);
+        let kps = &out[..stats.kept];
+        // Level 0 gets 4/5 of the output, level 1 the rest.
+        assert!(kps.iter().filter(|k| k.level == 0).count() == 4, "{kps:?}");
+        let coarse: std::vec::Vec<_> = kps.iter().filter(|k| k.level == 1).collect();
+        assert_eq!(coarse.len(), 4, "{kps:?}");
+        // The square's inside spans level-0 pixels 69..=188 and 52..=141.
+        for k in coarse {
+            let p = k.position();
+            let near = |v: f32, a: f32, b: f32| (v - a).abs() <= 2.5 || (v - b).abs() <= 2.5;
+            assert!(near(p[0], 69.0, 188.0) && near(p[1], 52.0, 141.0), "{p:?}");
+        }
+    }
+
+    #[test]
+    fn corners_repeat_and_turn_with_a_rotated_shifted_view() {
+        let scene = Scene::random(11, W, H, 120);
+        let a = View::new(W, H, 0.0, [0.0, 0.0]);
+        let b = View::new(W, H, 0.5, [7.3, -4.1]);
+        let cfg = FastConfig::default();
+        let (sa, ka) = detect_all(&scene.render(&a), &cfg);
+        let (sb, kb) = detect_all(&scene.render(&b), &cfg);
+        let (ka, kb) = (&ka[..sa.kept], &kb[..sb.kept]);
+        let (mut visible, mut found, mut angle_ok) = (0, 0, 0);
+        for k in ka {
+            let p = a.map_to(&b, [k.x, k.y]);
+            let m = BORDER as f32 + 2.0;
+            if p[0] < m || p[1] < m || p[0] > (W as f32 - m) || p[1] > (H as f32 - m) {
+                continue;
+            }
+            visible += 1;
+            let near = kb
+                .iter()
+                .find(|q| (q.x - p[0]).powi(2) + (q.y - p[1]).powi(2) <= 2.0f32.powi(2));
+            if let Some(q) = near {
+                found += 1;
+                let d = libm::remainderf(q.angle - k.angle - 0.5, 2.0 * core::f32::consts::PI);
+                if d.abs() < 0.25 {
+                    angle_ok += 1;
+                }
+            }
+        }
+        // Bucketing keeps only the best few per cell, so a corner of one view can lose its
+        // place to another in the other view; most must come back.
+        assert!(visible > 40, "{visible}");
+        assert!(found * 10 >= visible * 6, "{found} of {visible}");
+        assert!(angle_ok * 10 >= found * 8, "{angle_ok} of {found}");
+    }
+}
