@@ -3,19 +3,15 @@
 //!
 //! Building reorders the slice in place: the median (along x at even depths, y at odd ones) of
 //! every range sits at the range's middle, the smaller half before it and the larger after.
-//! Medians are taken by a total order (the axis, then [`point_order`]), so the arrangement is
-//! a function of the points alone, whatever the selection algorithm. No index or node storage
-//! is needed.
+//! No index or node storage is needed.
 //!
-//! Building and querying walk the tree with an explicit stack instead of recursion, so the
-//! firmware's stack has a static bound. A range of `len` points has `floor(log2(len)) + 1`
+//! Building and querying walk the tree with an explicit stack instead of recursion (the
+//! median selection is still `core`'s, see `voxel_downsample`), so the firmware's stack can
+//! have a static bound. A range of `len` points has `floor(log2(len)) + 1`
 //! levels below it, and a depth-first walk keeps at most one waiting range per level plus the
 //! current one: [`LEVELS`] entries (`usize::BITS + 1`) hold any slice (12 for 1081 points).
 
-use core::cmp::Ordering;
-
-use crate::frontend::scan::{point_order, ScanPoint};
-use crate::sort::select_nth_by;
+use crate::frontend::scan::ScanPoint;
 
 /// Entries of the walks' explicit stacks: enough for a slice of any length (see the module
 /// doc).
@@ -27,13 +23,6 @@ pub struct KdTree<'a> {
     points: &'a [ScanPoint],
 }
 
-/// The order of the medians along `axis`: a total order.
-fn axis_order(axis: usize, a: &ScanPoint, b: &ScanPoint) -> Ordering {
-    a.p[axis]
-        .total_cmp(&b.p[axis])
-        .then_with(|| point_order(a, b))
-}
-
 fn build(points: &mut [ScanPoint]) {
     // (start, end, axis) of the ranges still to arrange.
     let mut stack = heapless::Vec::<(usize, usize, usize), LEVELS>::new();
@@ -43,7 +32,9 @@ fn build(points: &mut [ScanPoint]) {
             continue;
         };
         let mid = range.len() / 2;
-        select_nth_by(range, mid, |a, b| axis_order(axis, a, b));
+        // Core's selection, not `select_nth_by` with `axis_order`: see `voxel_downsample`
+        // for why results must not move yet.
+        range.select_nth_unstable_by(mid, |a, b| a.p[axis].total_cmp(&b.p[axis]));
         for (s, e) in [(lo, lo + mid), (lo + mid + 1, hi)] {
             // Never full (see the module doc).
             if e > s + 1 && stack.push((s, e, axis ^ 1)).is_err() {

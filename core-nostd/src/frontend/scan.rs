@@ -353,26 +353,15 @@ fn voxel_key(p: &[f32; 2], inv: f32) -> (i32, i32) {
     )
 }
 
-/// A total order on points (positions, then normals, by their bits): equal only when identical.
-pub(crate) fn point_order(a: &ScanPoint, b: &ScanPoint) -> core::cmp::Ordering {
-    a.p[0]
-        .total_cmp(&b.p[0])
-        .then_with(|| a.p[1].total_cmp(&b.p[1]))
-        .then_with(|| a.n[0].total_cmp(&b.n[0]))
-        .then_with(|| a.n[1].total_cmp(&b.n[1]))
-}
-
 /// Replaces the points of every voxel by their centroid (normals averaged and renormalised;
 /// zero when they cancel or none had one). Returns how many points were merged away.
 pub fn voxel_downsample<const N: usize>(pts: &mut ScanPoints<N>, voxel: f32) -> usize {
     let inv = 1.0 / voxel;
-    // By voxel, then by a total order on the points: the order inside a voxel (which sets the
-    // rounding of the centroid's sums) depends on the points alone, not on the sort.
-    crate::sort::sort_by(pts, |a, b| {
-        voxel_key(&a.p, inv)
-            .cmp(&voxel_key(&b.p, inv))
-            .then_with(|| point_order(a, b))
-    });
+    // The order inside a voxel sets the rounding of the centroid's sums, and the maps of the
+    // CARMEN logs still change under such a rounding change (mit-csail's loop closures, issue
+    // 15), so core's sort stays here until they do not: `crate::sort::sort_by` with a
+    // total order on the points as the tie-break is the recursion-free replacement.
+    pts.sort_unstable_by_key(|a| voxel_key(&a.p, inv));
     let before = pts.len();
     let mut write = 0usize;
     let mut read = 0usize;
