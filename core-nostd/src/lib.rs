@@ -20,6 +20,8 @@
 //! * [`mapper`]: the LiDAR mapper assembled from all of the above: front-end, frame nodes,
 //!   loop closure, GPE with the worst-case prediction, and the back-end in bounded steps.
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.
+//! * [`sort`]: sorting and selection without recursion, so the firmware's stack has a static
+//!   bound.
 //! * [`workload`]: a fixed workload used to check ARM and x86-64 agree, and to count
 //!   instructions on the emulated Cortex-A9.
 #![no_std]
@@ -44,6 +46,7 @@ pub mod mapper;
 pub mod profile;
 pub mod sensor;
 pub mod solver;
+pub mod sort;
 pub mod storage;
 pub mod workload;
 

@@ -292,7 +292,7 @@ fn print_stat(
         }
     }
     let sorted = &mut scratch[..n];
-    sorted.sort_unstable();
+    cloi_core::sort::sort(sorted);
     let total: u64 = sorted.iter().map(|&c| u64::from(c)).sum();
     println!(
         "stat={name} n={n} min={} median={} p99={} max={} mean={} total={total}",

@@ -192,7 +192,7 @@ pub fn select(
     for (i, o) in order.iter_mut().enumerate() {
         *o = i as u32;
     }
-    order.sort_unstable_by_key(|&i| (keys.get(i as usize).copied(), i));
+    crate::sort::sort_by_key(order, |&i| (keys.get(i as usize).copied(), i));
 
     // Moments of every occupied cell, in key order.
     let mut ncells = 0usize;

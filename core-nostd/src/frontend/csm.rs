@@ -223,19 +223,19 @@ impl Search<'_, '_> {
         dy: i32,
         bound: u32,
     ) {
-        if bound <= self.best {
-            return;
-        }
-        if k == 0 {
-            self.best = bound;
-            self.best_at = Some((angle, dx, dy));
-            return;
-        }
-        let window = self.window;
-        let (children, n) = children(window, k, dx, dy, |k, x, y| self.score(cells, k, x, y));
-        let children = &children[..n];
-        for &(b, cx, cy) in children.iter() {
-            self.descend(cells, angle, k - 1, cx, cy, b);
+        let mut frontier = Frontier::new((bound, k, dx, dy));
+        while let Some((bound, k, dx, dy)) = frontier.pop() {
+            if bound <= self.best {
+                continue;
+            }
+            if k == 0 {
+                self.best = bound;
+                self.best_at = Some((angle, dx, dy));
+                continue;
+            }
+            let window = self.window;
+            let (children, n) = children(window, k, dx, dy, |k, x, y| self.score(cells, k, x, y));
+            frontier.push_children(k - 1, &children[..n]);
         }
     }
 }
@@ -373,8 +373,48 @@ pub(crate) fn children(
         children[n] = (score(k - 1, cx, cy), cx, cy);
         n += 1;
     }
-    children[..n].sort_unstable_by_key(|c| core::cmp::Reverse(c.0));
+    crate::sort::sort_by_key(&mut children[..n], |c| core::cmp::Reverse(c.0));
     (children, n)
+}
+
+/// A candidate of the branch and bound: `(bound, level, dx, dy)`.
+pub(crate) type Candidate = (u32, usize, i32, i32);
+
+/// Most candidates waiting in a [`Frontier`]: expanding a candidate of level `k` replaces it by
+/// at most four of level `k - 1`, one of which is expanded next, so at most three wait per
+/// level below the root, and one at the root's.
+const FRONTIER: usize = 3 * MAX_LEVELS + 1;
+
+/// The candidates of a depth-first branch and bound still to visit, in fixed storage, so the
+/// descent needs no recursion: the last pushed is visited first.
+#[derive(Debug)]
+pub(crate) struct Frontier {
+    items: heapless::Vec<Candidate, FRONTIER>,
+}
+
+impl Frontier {
+    /// A frontier holding the root candidate only.
+    pub(crate) fn new(root: Candidate) -> Self {
+        Frontier {
+            items: heapless::Vec::from_array([root]),
+        }
+    }
+
+    /// The next candidate to visit.
+    pub(crate) fn pop(&mut self) -> Option<Candidate> {
+        self.items.pop()
+    }
+
+    /// Queues the `children` (best first, as [`children`] gives them) of a candidate, at level
+    /// `k`, so that the best is visited first. Levels below [`MAX_LEVELS`] never fill the
+    /// frontier (see [`FRONTIER`]).
+    pub(crate) fn push_children(&mut self, k: usize, children: &[(u32, i32, i32)]) {
+        for &(b, x, y) in children.iter().rev() {
+            if self.items.push((b, k, x, y)).is_err() {
+                return;
+            }
+        }
+    }
 }
 
 #[cfg(test)]

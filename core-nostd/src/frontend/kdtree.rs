@@ -3,10 +3,19 @@
 //!
 //! Building reorders the slice in place: the median (along x at even depths, y at odd ones) of
 //! every range sits at the range's middle, the smaller half before it and the larger after.
-//! No index or node storage is needed; a query descends with recursion of depth
-//! `log2(len)` (11 for 1081 points).
+//! No index or node storage is needed.
+//!
+//! Building and querying walk the tree with an explicit stack instead of recursion (the
+//! median selection is still `core`'s, see `voxel_downsample`), so the firmware's stack can
+//! have a static bound. A range of `len` points has `floor(log2(len)) + 1`
+//! levels below it, and a depth-first walk keeps at most one waiting range per level plus the
+//! current one: [`LEVELS`] entries (`usize::BITS + 1`) hold any slice (12 for 1081 points).
 
 use crate::frontend::scan::ScanPoint;
+
+/// Entries of the walks' explicit stacks: enough for a slice of any length (see the module
+/// doc).
+const LEVELS: usize = usize::BITS as usize + 1;
 
 /// A 2-d tree borrowing its points.
 #[derive(Debug, Clone, Copy)]
@@ -14,16 +23,24 @@ pub struct KdTree<'a> {
     points: &'a [ScanPoint],
 }
 
-fn build(points: &mut [ScanPoint], axis: usize) {
-    if points.len() <= 1 {
-        return;
-    }
-    let mid = points.len() / 2;
-    points.select_nth_unstable_by(mid, |a, b| a.p[axis].total_cmp(&b.p[axis]));
-    let (left, right) = points.split_at_mut(mid);
-    build(left, axis ^ 1);
-    if let Some((_, rest)) = right.split_first_mut() {
-        build(rest, axis ^ 1);
+fn build(points: &mut [ScanPoint]) {
+    // (start, end, axis) of the ranges still to arrange.
+    let mut stack = heapless::Vec::<(usize, usize, usize), LEVELS>::new();
+    let mut next = Some((0, points.len(), 0));
+    while let Some((lo, hi, axis)) = next.take().or_else(|| stack.pop()) {
+        let Some(range) = points.get_mut(lo..hi) else {
+            continue;
+        };
+        let mid = range.len() / 2;
+        // Core's selection, not `select_nth_by` with `axis_order`: see `voxel_downsample`
+        // for why results must not move yet.
+        range.select_nth_unstable_by(mid, |a, b| a.p[axis].total_cmp(&b.p[axis]));
+        for (s, e) in [(lo, lo + mid), (lo + mid + 1, hi)] {
+            // Never full (see the module doc).
+            if e > s + 1 && stack.push((s, e, axis ^ 1)).is_err() {
+                break;
+            }
+        }
     }
 }
 
@@ -31,7 +48,7 @@ impl<'a> KdTree<'a> {
     /// Arranges `points` into a tree (in place) and borrows them. Non-finite points must not be
     /// present (preprocessing never produces them).
     pub fn build(points: &'a mut [ScanPoint]) -> KdTree<'a> {
-        build(points, 0);
+        build(points);
         KdTree { points }
     }
 
@@ -47,48 +64,58 @@ impl<'a> KdTree<'a> {
     }
 
     /// The nearest point to `q` closer than `sqrt(max_d2)`, with its squared distance.
+    ///
+    /// Depth first, the side of `q` first; the other side of a node is entered only when its
+    /// splitting line is closer than the best point found by then.
     pub fn nearest(&self, q: [f32; 2], max_d2: f32) -> Option<(&'a ScanPoint, f32)> {
         let mut best: Option<(&'a ScanPoint, f32)> = None;
         let mut best_d2 = max_d2;
-        nearest(self.points, 0, q, &mut best, &mut best_d2);
-        best
-    }
-}
-
-fn nearest<'a>(
-    pts: &'a [ScanPoint],
-    axis: usize,
-    q: [f32; 2],
-    best: &mut Option<(&'a ScanPoint, f32)>,
-    best_d2: &mut f32,
-) {
-    let Some((left, rest)) = pts.split_at_checked(pts.len() / 2) else {
-        return;
-    };
-    let Some((node, right)) = rest.split_first() else {
-        return;
-    };
-    let (dx, dy) = (node.p[0] - q[0], node.p[1] - q[1]);
-    let d2 = dx * dx + dy * dy;
-    if d2 < *best_d2 {
-        *best_d2 = d2;
-        *best = Some((node, d2));
-    }
-    let diff = if axis == 0 {
-        q[0] - node.p[0]
-    } else {
-        q[1] - node.p[1]
-    };
-    let (near, far) = if diff < 0.0 {
-        (left, right)
-    } else {
-        (right, left)
-    };
-    if !near.is_empty() {
-        nearest(near, axis ^ 1, q, best, best_d2);
-    }
-    if !far.is_empty() && diff * diff < *best_d2 {
-        nearest(far, axis ^ 1, q, best, best_d2);
+        // The far sides passed on the way down: (start, end, axis, squared distance from `q`
+        // to the splitting line), entered on the way back only if that line is closer than
+        // the best point found by then.
+        let mut far_sides = heapless::Vec::<(usize, usize, usize, f32), LEVELS>::new();
+        let (mut lo, mut hi, mut axis) = (0, self.points.len(), 0);
+        loop {
+            let mid = lo + (hi - lo) / 2;
+            if let (true, Some(node)) = (lo < hi, self.points.get(mid)) {
+                let (dx, dy) = (node.p[0] - q[0], node.p[1] - q[1]);
+                let d2 = dx * dx + dy * dy;
+                if d2 < best_d2 {
+                    best_d2 = d2;
+                    best = Some((node, d2));
+                }
+                let diff = if axis == 0 {
+                    q[0] - node.p[0]
+                } else {
+                    q[1] - node.p[1]
+                };
+                let (near, far) = if diff < 0.0 {
+                    ((lo, mid), (mid + 1, hi))
+                } else {
+                    ((mid + 1, hi), (lo, mid))
+                };
+                // Never full (see the module doc).
+                if far.1 > far.0
+                    && far_sides
+                        .push((far.0, far.1, axis ^ 1, diff * diff))
+                        .is_err()
+                {
+                    return best;
+                }
+                (lo, hi, axis) = (near.0, near.1, axis ^ 1);
+                continue;
+            }
+            // Back up to the deepest far side still worth entering.
+            loop {
+                let Some((l, h, a, gap)) = far_sides.pop() else {
+                    return best;
+                };
+                if gap < best_d2 {
+                    (lo, hi, axis) = (l, h, a);
+                    break;
+                }
+            }
+        }
     }
 }
 

@@ -357,6 +357,10 @@ fn voxel_key(p: &[f32; 2], inv: f32) -> (i32, i32) {
 /// zero when they cancel or none had one). Returns how many points were merged away.
 pub fn voxel_downsample<const N: usize>(pts: &mut ScanPoints<N>, voxel: f32) -> usize {
     let inv = 1.0 / voxel;
+    // The order inside a voxel sets the rounding of the centroid's sums, and the maps of the
+    // CARMEN logs still change under such a rounding change (mit-csail's loop closures, issue
+    // 15), so core's sort stays here until they do not: `crate::sort::sort_by` with a
+    // total order on the points as the tie-break is the recursion-free replacement.
     pts.sort_unstable_by_key(|a| voxel_key(&a.p, inv));
     let before = pts.len();
     let mut write = 0usize;

@@ -135,7 +135,7 @@ impl Mapper<'_> {
                 let _ = candidates.push((d, slot, m.anchor_serial));
             }
         }
-        candidates.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        crate::sort::sort_by(&mut candidates, |a, b| a.0.total_cmp(&b.0));
 
         let mut added = 0u8;
         for &(_, slot, anchor_serial) in candidates.iter().take(lc.max_candidates as usize) {

@@ -244,7 +244,7 @@ pub(crate) fn analyze(
         for r in col.iter_mut() {
             *r = mark[*r as usize];
         }
-        col.sort_unstable();
+        crate::sort::sort(col);
         start = end;
     }
     // node -> position, position -> node.

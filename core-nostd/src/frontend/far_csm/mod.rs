@@ -28,7 +28,7 @@
 
 use core::f64::consts::PI;
 
-use crate::frontend::csm::{children, CsmError, Pyramid};
+use crate::frontend::csm::{children, CsmError, Frontier, Pyramid};
 use crate::frontend::grid::Submap;
 use crate::frontend::scan::ScanPoint;
 use crate::geom::Se2;
@@ -164,27 +164,27 @@ impl Bnb<'_, '_> {
     }
 
     fn descend(&mut self, cells: &[[i32; 2]], angle: u32, k: usize, dx: i32, dy: i32, b: u32) {
-        // Cut only what can beat neither the best nor the runner-up.
-        if b <= self.second {
-            return;
-        }
-        if k == self.base {
-            if b > self.best {
-                if self.best_at.is_some() && self.distinct(angle, dx, dy) {
-                    self.second = self.second.max(self.best);
-                }
-                self.best = b;
-                self.best_at = Some((angle, dx, dy));
-            } else if self.distinct(angle, dx, dy) {
-                self.second = b;
+        let mut frontier = Frontier::new((b, k, dx, dy));
+        while let Some((b, k, dx, dy)) = frontier.pop() {
+            // Cut only what can beat neither the best nor the runner-up.
+            if b <= self.second {
+                continue;
             }
-            return;
-        }
-        let window = self.window;
-        let (children, n) = children(window, k, dx, dy, |k, x, y| self.score(cells, k, x, y));
-        let children = &children[..n];
-        for &(cb, cx, cy) in children.iter() {
-            self.descend(cells, angle, k - 1, cx, cy, cb);
+            if k == self.base {
+                if b > self.best {
+                    if self.best_at.is_some() && self.distinct(angle, dx, dy) {
+                        self.second = self.second.max(self.best);
+                    }
+                    self.best = b;
+                    self.best_at = Some((angle, dx, dy));
+                } else if self.distinct(angle, dx, dy) {
+                    self.second = b;
+                }
+                continue;
+            }
+            let window = self.window;
+            let (children, n) = children(window, k, dx, dy, |k, x, y| self.score(cells, k, x, y));
+            frontier.push_children(k - 1, &children[..n]);
         }
     }
 }

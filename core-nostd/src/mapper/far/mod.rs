@@ -270,7 +270,7 @@ impl Mapper<'_> {
             );
         }
         // Nearest last: the queue is popped from the end.
-        taken.sort_unstable_by(|a, b| b.distance.total_cmp(&a.distance));
+        crate::sort::sort_by(&mut taken, |a, b| b.distance.total_cmp(&a.distance));
         self.st.far.queue = taken;
     }
 
