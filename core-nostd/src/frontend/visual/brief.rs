@@ -158,8 +158,6 @@ pub fn describe_all(
 mod tests {
     extern crate std;
 
-    use super::super::fast::{detect, FastConfig};
-    use super::super::image::smooth_into;
     use super::super::synth::{Scene, View};
     use super::*;
 
@@ -222,16 +220,7 @@ mod tests {
 
     /// Keypoints and descriptors of one view.
     fn features(scene: &Scene, view: &View) -> std::vec::Vec<(Keypoint, Descriptor)> {
-        let data = scene.render(view);
-        let img = GrayImage::new_checked(W, H, W, &data).unwrap();
-        let mut kps = [Keypoint::default(); 300];
-        let n = detect(&img, 0, &FastConfig::default(), &mut kps).kept;
-        let mut buf = std::vec![0u8; W * H];
-        let smooth = smooth_into(&img, &mut buf).unwrap();
-        kps[..n]
-            .iter()
-            .filter_map(|k| Some((*k, describe(&smooth, k)?)))
-            .collect()
+        super::super::synth::features_of(&scene.render(view), W, H)
     }
 
     #[test]

@@ -216,9 +216,7 @@ mod tests {
 
     use std::vec::Vec;
 
-    use super::super::brief::describe;
-    use super::super::fast::{detect, FastConfig, Keypoint};
-    use super::super::image::{smooth_into, GrayImage};
+    use super::super::fast::Keypoint;
     use super::super::synth::{Scene, View};
     use super::*;
 
@@ -302,14 +300,8 @@ mod tests {
     }
 
     fn features_of(data: &[u8]) -> (Vec<Keypoint>, Vec<Descriptor>) {
-        let img = GrayImage::new_checked(W, H, W, data).unwrap();
-        let mut kps = [Keypoint::default(); 300];
-        let n = detect(&img, 0, &FastConfig::default(), &mut kps).kept;
-        let mut buf = std::vec![0u8; W * H];
-        let smooth = smooth_into(&img, &mut buf).unwrap();
-        kps[..n]
-            .iter()
-            .filter_map(|k| Some((*k, describe(&smooth, k)?)))
+        super::super::synth::features_of(data, W, H)
+            .into_iter()
             .unzip()
     }
 

@@ -7,6 +7,25 @@ extern crate std;
 
 use std::vec::Vec;
 
+use super::brief::{describe, Descriptor};
+use super::fast::{detect, FastConfig, Keypoint};
+use super::image::{smooth_into, GrayImage};
+
+/// The default FAST corners (level 0, at most 300) of a `w` x `h` grey frame with their rotated
+/// BRIEF descriptors (corners too near the border for one are left out): what the descriptor
+/// and matching tests compare between views.
+pub fn features_of(data: &[u8], w: usize, h: usize) -> Vec<(Keypoint, Descriptor)> {
+    let img = GrayImage::new_checked(w, h, w, data).unwrap();
+    let mut kps = [Keypoint::default(); 300];
+    let n = detect(&img, 0, &FastConfig::default(), &mut kps).kept;
+    let mut buf = std::vec![0u8; w * h];
+    let smooth = smooth_into(&img, &mut buf).unwrap();
+    kps[..n]
+        .iter()
+        .filter_map(|k| Some((*k, describe(&smooth, k)?)))
+        .collect()
+}
+
 /// A deterministic generator (SplitMix64) for the tests.
 pub struct Rng(u64);
 
