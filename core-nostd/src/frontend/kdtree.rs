@@ -9,7 +9,7 @@
 //! median selection is still `core`'s, see `voxel_downsample`), so the firmware's stack can
 //! have a static bound. A range of `len` points has `floor(log2(len)) + 1`
 //! levels below it, and a depth-first walk keeps at most one waiting range per level plus the
-//! current one: [`LEVELS`] entries (`usize::BITS + 1`) hold any slice (12 for 1081 points).
+//! current one: `LEVELS` entries (`usize::BITS + 1`) hold any slice (12 for 1081 points).
 
 use crate::frontend::scan::ScanPoint;
 
