@@ -32,8 +32,8 @@ fn build(points: &mut [ScanPoint]) {
             continue;
         };
         let mid = range.len() / 2;
-        // Core's selection, not `select_nth_by` with `axis_order`: see `voxel_downsample`
-        // for why results must not move yet.
+        // Core's selection, not `crate::sort::select_nth_by` with a total-order tie-break:
+        // see `voxel_downsample` for why results must not move yet.
         range.select_nth_unstable_by(mid, |a, b| a.p[axis].total_cmp(&b.p[axis]));
         for (s, e) in [(lo, lo + mid), (lo + mid + 1, hi)] {
             // Never full (see the module doc).

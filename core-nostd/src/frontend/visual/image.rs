@@ -9,7 +9,7 @@
 //! Reads outside the image return `None` ([`GrayImage::get`]) or the nearest border pixel
 //! ([`GrayImage::clamped`]), so no coordinate, however wrong, makes a read panic.
 
-use crate::sensor::{ImageError, ImageView};
+use crate::sensor::{ImageError, ImageView, PixelFormat, Timestamp};
 
 /// A checked, borrowed grey image: `height` rows of `stride` bytes, row 0 at the top.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -32,22 +32,15 @@ impl<'a> GrayImage<'a> {
         stride: usize,
         data: &'a [u8],
     ) -> Result<Self, ImageError> {
-        if width == 0 || height == 0 {
-            return Err(ImageError::ZeroSize);
-        }
-        if stride < width {
-            return Err(ImageError::StrideTooSmall);
-        }
-        let needed = stride
-            .checked_mul(height - 1)
-            .and_then(|n| n.checked_add(width))
-            .unwrap_or(usize::MAX);
-        if data.len() < needed {
-            return Err(ImageError::BufferTooSmall {
-                needed,
-                got: data.len(),
-            });
-        }
+        // The size rules of a one-byte-per-pixel camera frame.
+        ImageView::new_checked(
+            Timestamp::from_nanos(0),
+            width,
+            height,
+            stride,
+            PixelFormat::Mono8,
+            data,
+        )?;
         Ok(Self {
             data,
             width,
