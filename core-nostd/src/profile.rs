@@ -176,6 +176,7 @@ impl<
             loop_scan: &mut self.loop_scan,
             odometry: &mut self.odometry,
             prune: self.prune.scratch(),
+            cameras: None,
             state: &mut self.state,
         }
         .start(config)

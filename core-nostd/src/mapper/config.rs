@@ -2,6 +2,7 @@
 //! wheeled base) and 10 m submaps.
 
 use crate::frontend::odometry::OdometryConfig;
+use crate::frontend::visual::TrackConfig;
 use crate::frontend::{GridParams, IcpConfig, KeyframeConfig, PreprocessConfig};
 use crate::geom::Cov3;
 use crate::mapper::gpe::GpeConfig;
@@ -243,6 +244,8 @@ pub struct MapperConfig {
     pub gpe: GpeConfig,
     /// Back-end.
     pub backend: BackendConfig,
+    /// Camera tracking (module `cameras`).
+    pub camera: TrackConfig,
 }
 
 impl Default for MapperConfig {
@@ -275,6 +278,7 @@ impl Default for MapperConfig {
             loops: LoopConfig::default(),
             gpe: GpeConfig::default(),
             backend: BackendConfig::default(),
+            camera: TrackConfig::default(),
         }
     }
 }

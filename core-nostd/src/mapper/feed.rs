@@ -24,16 +24,17 @@
 //! needs no wait goes to the mapper at once, without a copy.
 //!
 //! # Driving it
-//! After every event (`odometry`, `gyro`, `scan`), the driver calls [`Feeder::next`] until it
+//! Images (`image`) go to the camera stage at once. After every event (`odometry`, `gyro`, `scan`), the driver calls [`Feeder::next`] until it
 //! gives `None`: each call pushes at most one released scan. At the end of the input,
 //! [`Feeder::finish`] until `None` pushes what is still held. Every pushed scan comes back as
 //! a [`Pushed`] with the source's own stamp, so the driver can step its back-end and record
 //! outputs per scan.
 
 use super::sync::{Admit, ScanGate, SyncStats, SYNC_SLOTS, SYNC_WAIT_NS};
-use super::{FrameOutput, Mapper, MapperError, Probe, ScanInput};
+use super::{FrameOutput, ImageOutput, Mapper, MapperError, Probe, ScanInput};
 use crate::frontend::scan::{BeamGeometry, MAX_POINTS};
 use crate::geom::Se2;
+use crate::sensor::ImageView;
 
 /// One scan held by the feeder.
 #[derive(Clone, Copy, Debug)]
@@ -235,6 +236,23 @@ impl<'s> Feeder<'s> {
         m.push_gyro(t, yaw_rate)?;
         self.gate.gyro(t);
         Ok(())
+    }
+
+    /// Camera `camera`'s image `view`, stamped `t` ns, to the mapper's camera stage. Images wait
+    /// for nothing: they are tracked against the camera's previous image on arrival, and one
+    /// whose stamp does not advance is rejected (counted per camera) rather than repaired,
+    /// since a camera's frames are not interpolated.
+    ///
+    /// # Errors
+    /// The mapper's rejection (see [`Mapper::push_image`]).
+    pub fn image(
+        &mut self,
+        m: &mut Mapper<'_>,
+        camera: u8,
+        t: i64,
+        view: &ImageView<'_>,
+    ) -> Result<ImageOutput, MapperError> {
+        m.push_image(camera, t, view)
     }
 
     /// A scan, with the odometry pose its source recorded at its time, if any. Gives the scan

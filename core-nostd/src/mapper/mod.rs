@@ -35,6 +35,7 @@
 //! keyframes are dropped (counted in [`MapperStats::keyframes_dropped`]) instead of failing; a
 //! full submap pool recycles the submap that newer ones cover best.
 
+mod cameras;
 pub mod config;
 mod far;
 pub mod feed;
@@ -58,6 +59,7 @@ use crate::solver::SolverBuffers;
 
 pub use crate::backend::schedule::BackendStep;
 pub use crate::gpe;
+pub use cameras::{CameraParts, ImageOutput, MAX_CAMERAS};
 pub use config::{BackendConfig, FrontendNoise, LoopConfig, MapperConfig};
 pub use feed::{Feeder, Pushed, ScanSlots};
 pub use frames::NodeMeta;
@@ -189,6 +191,8 @@ pub struct Mapper<'r> {
     pub(crate) loop_scan: &'r mut ScanPoints,
     pub(crate) odometry: &'r mut OdometryFusion<ODOMETRY_HISTORY>,
     pub(crate) prune: PruneScratch<'r>,
+    /// The camera stage's storage, when the mapper takes images.
+    pub(crate) cameras: Option<CameraParts<'r>>,
     pub(crate) st: &'r mut MapperState,
 }
 
@@ -219,6 +223,8 @@ pub struct MapperParts<'r> {
     pub odometry: &'r mut OdometryFusion<ODOMETRY_HISTORY>,
     /// Scratch of the pool pruning (as large as the graph's capacity).
     pub prune: PruneScratch<'r>,
+    /// Storage of the camera stage; `None` for a LiDAR-only mapper.
+    pub cameras: Option<CameraParts<'r>>,
     /// Small state.
     pub state: &'r mut MapperState,
 }
@@ -304,6 +310,7 @@ impl<'r> Mapper<'r> {
             loop_scan: parts.loop_scan,
             odometry: parts.odometry,
             prune: parts.prune,
+            cameras: parts.cameras,
             st: parts.state,
         })
     }

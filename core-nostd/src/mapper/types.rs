@@ -125,6 +125,10 @@ pub enum MapperError {
     /// A scan that had to wait for odometry has more beams than a held slot takes
     /// ([`MAX_POINTS`](crate::frontend::scan::MAX_POINTS); rejected, counted by the feeder).
     TooManyBeams,
+    /// An image for a camera the mapper has no storage for (rejected; the caller counts it).
+    NoCamera,
+    /// An image out of order or unreadable (rejected, counted per camera).
+    Image(crate::frontend::visual::TrackError),
 }
 
 impl core::fmt::Display for MapperError {
@@ -137,6 +141,15 @@ impl core::fmt::Display for MapperError {
             MapperError::BadSample => f.write_str("odometry or gyro sample rejected"),
             MapperError::TooManyBeams => {
                 f.write_str("scan waiting for odometry has more beams than a held slot takes")
+            }
+            MapperError::NoCamera => {
+                f.write_str("image from a camera the mapper has no storage for")
+            }
+            MapperError::Image(crate::frontend::visual::TrackError::OutOfOrder) => {
+                f.write_str("image time stamp not after the camera's previous one")
+            }
+            MapperError::Image(crate::frontend::visual::TrackError::Frame(_)) => {
+                f.write_str("image larger than the camera storage or unusable")
             }
         }
     }

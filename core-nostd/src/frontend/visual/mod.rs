@@ -11,6 +11,8 @@
 //! * [`pyramid`]: levels of halving resolution over caller-provided bytes.
 //! * [`brief`]: the rotated 256-bit binary descriptor and its Hamming distance.
 //! * [`fast`]: FAST-9 corners, spread by a grid with a low-feature fallback, and oriented.
+//! * [`frame`]: the features of one frame (the stages above in order) in fixed storage.
+//! * [`track`]: one camera's frames matched to its previous frame, and the low-feature count.
 //!
 //! Everything works on borrowed or fixed-capacity storage: nothing allocates, nothing recurses,
 //! nothing reads a clock, and no input makes it panic. Pixels are `f32`, geometry `f64`, and
@@ -19,16 +21,20 @@
 pub mod brief;
 pub mod camera;
 pub mod fast;
+pub mod frame;
 pub mod image;
 pub mod matching;
 pub mod pyramid;
+pub mod track;
 
 pub use brief::{describe, describe_all, Descriptor};
 pub use camera::{CameraError, CameraExtrinsic, CameraModel, Intrinsics, Kb4, Pinhole};
 pub use fast::{detect, detect_pyramid, DetectStats, FastConfig, Keypoint};
+pub use frame::{FrameError, FrameFeatures};
 pub use image::{smooth_into, smoothed_bytes, GrayImage};
 pub use matching::{match_brute_force, match_guided, Match, MatchConfig, MatchStats};
 pub use pyramid::{pyramid_bytes, Pyramid, PyramidError};
+pub use track::{CameraTrack, TrackConfig, TrackError, TrackScratch, TrackStats, TrackStep};
 
 #[cfg(test)]
 mod synth;
