@@ -512,3 +512,72 @@ fn a_full_disk_is_a_clear_error_and_keeps_the_previous_outputs() {
     );
     assert_eq!(output_set(&out), before, "the previous outputs changed");
 }
+
+/// A bag with a camera (the simulator's sensor set C+L) is mapped with its images tracked:
+/// every image reaches the camera stage, a textured home ceiling gives the features and
+/// frame-to-frame matches the visual odometry needs, and the LiDAR map is the same as with
+/// the images left out (camera frames do not join the graph yet).
+#[test]
+fn a_bag_with_a_camera_has_its_images_tracked_and_the_lidar_map_unchanged() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let bag = tmp.path().join("cl.mcap");
+    let sim = cloi(&[
+        "sim",
+        "--world",
+        "home",
+        "--duration",
+        "15",
+        "--sensors",
+        "C+L",
+        "--seed",
+        "5",
+        "--out",
+        bag.to_str().expect("utf-8"),
+    ]);
+    assert!(
+        sim.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sim.stderr)
+    );
+    let map = |name: &str, extra: &[&str]| {
+        let dir = tmp.path().join(name);
+        let mut args = vec![
+            "map",
+            bag.to_str().expect("utf-8"),
+            "--deterministic",
+            "--quiet",
+        ];
+        args.extend_from_slice(extra);
+        args.extend_from_slice(&["--out", dir.to_str().expect("utf-8")]);
+        let out = cloi(&args);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        dir
+    };
+    let with = map("with", &[]);
+    let without = map("without", &["--no-images"]);
+    let r = report(&with);
+    let cams = &r["cameras"];
+    let track = &cams["tracks"][0];
+    eprintln!("{cams:#}");
+    // The simulated camera runs at 10 Hz over 15 s.
+    let frames = track["frames"].as_u64().expect("frames");
+    assert!((140..=151).contains(&frames), "{frames} frames");
+    assert_eq!(track["out_of_order"], 0);
+    assert_eq!(track["unreadable"], 0);
+    assert_eq!(cams["refused"], 0);
+    // The home ceiling test (camera_frontend_sim) finds 45-62 features per frame.
+    let features = track["features_mean"].as_f64().expect("features");
+    assert!(features >= 40.0, "{features} features per frame");
+    let tracked = track["tracked_mean"].as_f64().expect("tracked");
+    assert!(tracked >= 0.4 * features, "{tracked} of {features} tracked");
+    assert!(report(&without).get("cameras").is_none());
+    for f in ["trajectory.tum", "gpe.tum", "graph.g2o"] {
+        let a = std::fs::read(with.join(f)).expect("output");
+        let b = std::fs::read(without.join(f)).expect("output");
+        assert!(a == b, "{f} differs with the images");
+    }
+}

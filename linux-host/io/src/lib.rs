@@ -7,6 +7,7 @@
 //! * [`ros2`]: ROS 2 message structs (serde + CDR) and their `ros2msg` schemas.
 //! * [`bag`]: writing ROS 2 bags as MCAP files.
 //! * [`bag_read`]: reading ROS 2 bags (MCAP) as a time-ordered stream of sensor messages.
+//! * [`camera_frame`]: camera pictures of ROS 2 messages as the mapper reads them.
 //! * [`carmen`]: CARMEN logs (`.clf`, `.log`, `.gz`, `.bz2`).
 //! * [`convert`]: CARMEN records to ROS 2 messages (`cloi convert`).
 //! * [`tum`]: TUM and KITTI trajectories.
@@ -20,6 +21,7 @@
 pub mod atomic;
 pub mod bag;
 pub mod bag_read;
+pub mod camera_frame;
 pub mod carmen;
 pub mod cli;
 pub mod cloilog;

@@ -52,9 +52,12 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 
 use anyhow::{bail, Context, Result};
+use cloi_core::mapper::MAX_CAMERAS;
+use cloi_core::sensor::PixelFormat;
 use cloi_core::Se2;
 
 use crate::io::bag_read::{BagReadOptions, BagReader, SensorMsg, TopicSelection};
+use crate::io::camera_frame::{self, Pixels};
 use crate::io::carmen::{CarmenLaser, CarmenReader, CarmenRecord, LaserSource};
 use crate::io::convert::DEFAULT_RANGE_MAX;
 pub use crate::io::parse_pose;
@@ -82,6 +85,8 @@ pub enum SensorEvent {
     },
     /// A planar laser scan.
     Scan(ScanEvent),
+    /// A camera picture.
+    Image(ImageEvent),
 }
 
 impl SensorEvent {
@@ -90,8 +95,28 @@ impl SensorEvent {
         match self {
             SensorEvent::Odometry { t_ns, .. } | SensorEvent::Gyro { t_ns, .. } => *t_ns,
             SensorEvent::Scan(s) => s.t_ns,
+            SensorEvent::Image(i) => i.t_ns,
         }
     }
+}
+
+/// A camera picture, uncompressed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ImageEvent {
+    /// Time stamp (ns).
+    pub t_ns: i64,
+    /// Which camera: 0 for the first image topic or simulated camera, 1 for the second.
+    pub camera: u8,
+    /// Columns.
+    pub width: usize,
+    /// Rows.
+    pub height: usize,
+    /// Bytes per row.
+    pub stride: usize,
+    /// Pixel layout.
+    pub format: PixelFormat,
+    /// The pixels, `stride * height` bytes.
+    pub data: Vec<u8>,
 }
 
 /// A planar laser scan.
@@ -186,10 +211,13 @@ pub struct InputStats {
     pub odometry_from_scans: u64,
     /// Gyro events.
     pub gyro: u64,
+    /// Camera images (all cameras).
+    pub images: u64,
     /// Events whose stamp is earlier than the previous event's of the same kind.
     pub backwards_stamps: u64,
     /// Records not delivered: damaged or undecodable records, lasers or topics not chosen,
-    /// unknown line types, images and other messages the mapper does not use.
+    /// unknown line types, images of encodings or topics not taken, other messages the mapper
+    /// does not use.
     pub skipped: u64,
     /// Earliest stamp delivered (ns).
     pub first_ns: Option<i64>,
@@ -240,7 +268,7 @@ trait EventSource {
 pub struct InputStream {
     source: Box<dyn EventSource>,
     stats: StatsHandle,
-    last: [Option<i64>; 3],
+    last: [Option<i64>; 5],
     size: InputSize,
     done: bool,
 }
@@ -259,7 +287,7 @@ impl InputStream {
         Self {
             source,
             stats: Arc::new(Mutex::new(InputStats::default())),
-            last: [None; 3],
+            last: [None; 5],
             size,
             done: false,
         }
@@ -313,6 +341,10 @@ impl Iterator for InputStream {
                     SensorEvent::Gyro { .. } => {
                         stats.gyro += 1;
                         2
+                    }
+                    SensorEvent::Image(i) => {
+                        stats.images += 1;
+                        3 + usize::from(i.camera.min(1))
                     }
                 };
                 if self.last[kind].is_some_and(|l| t < l) {
@@ -811,6 +843,10 @@ struct BagSource {
     odom_named: bool,
     /// Odometry topics passed over for their global frame.
     passed_over: Vec<Arc<str>>,
+    /// Image topics in order of their first message: camera 0, camera 1.
+    cameras: Vec<Arc<str>>,
+    /// Reasons images were refused, each warned about once.
+    image_refusals: Vec<String>,
     ignored: u64,
 }
 
@@ -826,6 +862,8 @@ impl BagSource {
             topics: [None, None, None],
             odom_named: opts.topics.odom.is_some(),
             passed_over: Vec::new(),
+            cameras: Vec::new(),
+            image_refusals: Vec::new(),
             ignored: 0,
         }
     }
@@ -857,6 +895,59 @@ impl BagSource {
             None => {
                 self.topics[kind] = Some(Arc::clone(topic));
                 true
+            }
+        }
+    }
+
+    /// The camera index of image topic `topic`: the first two image topics are cameras 0 and
+    /// 1 (as many as the mapper tracks); a third is not taken (warned once).
+    fn camera_of(&mut self, topic: &Arc<str>, stats: &mut InputStats) -> Option<u8> {
+        if let Some(i) = self.cameras.iter().position(|t| t == topic) {
+            return u8::try_from(i).ok();
+        }
+        if self.cameras.len() < MAX_CAMERAS {
+            self.cameras.push(Arc::clone(topic));
+            return u8::try_from(self.cameras.len() - 1).ok();
+        }
+        self.refuse_image(
+            format!("image topic {topic:?} not taken: the mapper tracks {MAX_CAMERAS} cameras"),
+            stats,
+        );
+        None
+    }
+
+    /// Counts a refused image and warns once per distinct reason.
+    fn refuse_image(&mut self, why: String, stats: &mut InputStats) {
+        self.ignored += 1;
+        if !self.image_refusals.contains(&why) {
+            log::warn!("{why}");
+            stats.warnings.push(why.clone());
+            self.image_refusals.push(why);
+        }
+    }
+
+    /// The event of an image message of camera `camera` stamped `t_ns`, or `None` (counted)
+    /// when its pixels cannot be read.
+    fn image_event(
+        &mut self,
+        camera: u8,
+        t_ns: i64,
+        pixels: Result<Pixels>,
+        stats: &mut InputStats,
+    ) -> Option<SensorEvent> {
+        match pixels {
+            Ok(p) => Some(SensorEvent::Image(ImageEvent {
+                t_ns,
+                camera,
+                width: p.width,
+                height: p.height,
+                stride: p.stride,
+                format: p.format,
+                data: p.data,
+            })),
+            Err(e) => {
+                self.refuse_image(format!("camera {camera}: {e:#}"), stats);
+                None
             }
         }
     }
@@ -982,6 +1073,24 @@ impl EventSource for BagSource {
                         yaw_rate: imu.angular_velocity.z,
                     }));
                 }
+                SensorMsg::Image(img) => {
+                    let t_ns = img.header.stamp.to_nanos();
+                    if let Some(cam) = self.camera_of(&message.topic, stats) {
+                        let ev = self.image_event(cam, t_ns, camera_frame::from_raw(img), stats);
+                        if let Some(ev) = ev {
+                            return Some(Ok(ev));
+                        }
+                    }
+                }
+                SensorMsg::CompressedImage(img) => {
+                    let t_ns = img.header.stamp.to_nanos();
+                    if let Some(cam) = self.camera_of(&message.topic, stats) {
+                        let pixels = camera_frame::from_compressed(&img);
+                        if let Some(ev) = self.image_event(cam, t_ns, pixels, stats) {
+                            return Some(Ok(ev));
+                        }
+                    }
+                }
                 _ => self.ignored += 1,
             }
         }
@@ -1036,7 +1145,16 @@ impl SampleSink for ChannelSink {
                 laser_offset: self.laser_offset,
                 odom: None,
             }),
-            Payload::GroundTruth(_) | Payload::Image(..) | Payload::Fault(_) => return Ok(()),
+            Payload::Image(cam, f) => SensorEvent::Image(ImageEvent {
+                t_ns,
+                camera: *cam,
+                width: f.width as usize,
+                height: f.height as usize,
+                stride: f.width as usize,
+                format: PixelFormat::Mono8,
+                data: f.pixels.clone(),
+            }),
+            Payload::GroundTruth(_) | Payload::Fault(_) => return Ok(()),
         };
         self.tx
             .send(Ok(event))
@@ -1157,6 +1275,14 @@ pub struct InputArgs {
     /// Bag topic of the IMU (default: the first `sensor_msgs/Imu` topic).
     #[arg(long)]
     pub imu_topic: Option<String>,
+    /// Bag topic of the only camera to track (default: the first two `sensor_msgs/Image` or
+    /// `CompressedImage` topics, as cameras 0 and 1).
+    #[arg(long, conflicts_with = "no_images")]
+    pub image_topic: Option<String>,
+    /// Leave the bag's camera images out (they do not change the LiDAR map yet; tracking
+    /// them costs a few milliseconds per image).
+    #[arg(long)]
+    pub no_images: bool,
     /// Robot frame of a bag without odometry, for the laser's static transform.
     #[arg(long)]
     pub base_frame: Option<String>,
@@ -1186,7 +1312,12 @@ impl InputArgs {
                 scan: self.scan_topic.clone(),
                 odom: self.odom_topic.clone(),
                 imu: self.imu_topic.clone(),
-                image: None,
+                // No topic has an empty name, so this takes none.
+                image: if self.no_images {
+                    Some(String::new())
+                } else {
+                    self.image_topic.clone()
+                },
             },
             base_frame: self.base_frame.clone(),
         }
@@ -1389,6 +1520,7 @@ FLASER 3 1.0 2.0 3.0 1.42 2.0 0.0 1.3 2.0 0.0 100.140000 host 0\n";
                 SensorEvent::Odometry { .. } => "odom",
                 SensorEvent::Gyro { .. } => "gyro",
                 SensorEvent::Scan(_) => "scan",
+                SensorEvent::Image(_) => "image",
             })
             .collect();
         // The last scan has no ODOM line since the previous scan: its own odometry comes first.

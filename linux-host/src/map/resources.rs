@@ -12,11 +12,14 @@
 
 use cloi_core::frontend::odometry::{OdometryConfig, OdometryFusion};
 use cloi_core::frontend::scan::{ScanPoint, ScanPoints};
+use cloi_core::frontend::visual::frame::{scratch_bytes, MAX_FEATURES};
+use cloi_core::frontend::visual::matching::Match;
+use cloi_core::frontend::visual::{CameraTrack, Keypoint};
 use cloi_core::frontend::{KeyframeConfig, PointMap};
 use cloi_core::graph::{PoseEdge, PoseGraph, PoseNode};
 use cloi_core::mapper::{
-    Mapper, MapperConfig, MapperError, MapperParts, MapperState, NodeMeta, SubmapMeta,
-    LOCAL_MAP_POINTS, LOOP_REFERENCE_POINTS, ODOMETRY_HISTORY, PYRAMID_LEVELS,
+    CameraParts, Mapper, MapperConfig, MapperError, MapperParts, MapperState, NodeMeta, SubmapMeta,
+    LOCAL_MAP_POINTS, LOOP_REFERENCE_POINTS, MAX_CAMERAS, ODOMETRY_HISTORY, PYRAMID_LEVELS,
 };
 use cloi_core::profile::ProfileSpec;
 
@@ -41,6 +44,51 @@ pub struct HeapResources {
     odometry: Box<OdometryFusion<ODOMETRY_HISTORY>>,
     prune: OwnedPruneScratch,
     state: Box<MapperState>,
+    cameras: HostCameras,
+}
+
+/// Largest camera frame the host's camera storage takes (bigger ones are refused and counted):
+/// 1280 x 1024, above the VGA and 720p sensors of the robots this is for.
+pub const MAX_FRAME: (usize, usize) = (1280, 1024);
+
+/// The camera stage's storage (module `cloi_core::mapper::cameras`): one track per camera and
+/// the scratch of one frame of up to [`MAX_FRAME`] pixels.
+#[derive(Debug)]
+struct HostCameras {
+    tracks: Vec<CameraTrack>,
+    bytes: Vec<u8>,
+    corners: Vec<Keypoint>,
+    matches: Vec<Match>,
+}
+
+impl HostCameras {
+    fn new() -> Self {
+        HostCameras {
+            tracks: (0..MAX_CAMERAS).map(|_| CameraTrack::new()).collect(),
+            bytes: vec![0; scratch_bytes(MAX_FRAME.0, MAX_FRAME.1)],
+            corners: vec![Keypoint::default(); MAX_FEATURES],
+            matches: vec![Match::default(); MAX_FEATURES],
+        }
+    }
+
+    /// Fresh tracks over the same storage.
+    fn parts(&mut self) -> CameraParts<'_> {
+        self.tracks.iter_mut().for_each(|t| *t = CameraTrack::new());
+        CameraParts {
+            tracks: &mut self.tracks,
+            bytes: &mut self.bytes,
+            corners: &mut self.corners,
+            matches: &mut self.matches,
+        }
+    }
+
+    fn bytes(&self) -> usize {
+        use std::mem::size_of_val;
+        size_of_val(&self.tracks[..])
+            + self.bytes.len()
+            + size_of_val(&self.corners[..])
+            + size_of_val(&self.matches[..])
+    }
 }
 
 impl HeapResources {
@@ -71,6 +119,7 @@ impl HeapResources {
                 distance: 0.2,
                 angle: 0.35,
             })),
+            cameras: HostCameras::new(),
         }
     }
 
@@ -98,6 +147,12 @@ impl HeapResources {
             + size_of::<MapperState>()
     }
 
+    /// Bytes of the camera stage's storage, on top of [`HeapResources::bytes`] (the firmware's
+    /// LiDAR-only resources have none).
+    pub fn camera_bytes(&self) -> usize {
+        self.cameras.bytes()
+    }
+
     /// Starts a new, empty map over these pools with `config` (see [`MapperParts::start`]).
     ///
     /// # Errors
@@ -117,6 +172,7 @@ impl HeapResources {
             loop_scan: &mut self.loop_scan,
             odometry: &mut self.odometry,
             prune: self.prune.scratch(),
+            cameras: Some(self.cameras.parts()),
             state: &mut self.state,
         }
         .start(config)

@@ -18,18 +18,20 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
+use cloi_core::frontend::visual::TrackStats;
 use cloi_core::frontend::{BeamGeometry, GridParams};
 use cloi_core::geom::Se2;
 use cloi_core::graph::EdgeKind;
 use cloi_core::mapper::sync::{SyncStats, SYNC_SLOTS, SYNC_WAIT_NS};
 use cloi_core::mapper::{
-    BackendStep, Feeder, FrameOutput, Mapper, MapperStats, ScanInput, ScanSlots,
+    BackendStep, Feeder, FrameOutput, Mapper, MapperError, MapperStats, ScanInput, ScanSlots,
 };
+use cloi_core::sensor::{ImageView, Timestamp};
 use cloi_core::storage::NodeId;
 use serde_json::json;
 
 use super::config::{MapConfig, Profile};
-use super::input::{InputStats, InputStream, SensorEvent};
+use super::input::{ImageEvent, InputStats, InputStream, SensorEvent};
 use super::output::{
     compose_global_grid, peak_heap_bytes, peak_rss_bytes, write_tum, MapProgress, MapReport,
     SubmapView,
@@ -106,6 +108,8 @@ struct Driver<'s> {
     first_stamp: Option<i64>,
     last_stamp: i64,
     rejected: u64,
+    /// Images the camera stage could not take (no storage for the camera, unusable sizes).
+    images_refused: u64,
     deadline: Duration,
     late: bool,
     /// How events reach the mapper (shared with the firmware).
@@ -155,6 +159,7 @@ impl Driver<'_> {
                     .scan(mapper, &input, s.odom, self.late)
                     .map(|p| (p, t0));
             }
+            Feed::Event(SensorEvent::Image(i)) => self.image(mapper, i),
             Feed::End => {}
         }
         let at_end = matches!(feed, Feed::End);
@@ -181,6 +186,26 @@ impl Driver<'_> {
             }
             self.late = started.elapsed() > self.deadline;
             after_scan(mapper, p.stamp);
+        }
+    }
+
+    /// Hands one image to the camera stage; refusals are counted there or, for an image the
+    /// mapper has no storage for, here.
+    fn image(&mut self, mapper: &mut Mapper<'_>, i: &ImageEvent) {
+        let view = ImageView::new_checked(
+            Timestamp::from_nanos(i.t_ns),
+            i.width,
+            i.height,
+            i.stride,
+            i.format,
+            &i.data,
+        );
+        let Ok(view) = view else {
+            self.images_refused += 1;
+            return;
+        };
+        if let Err(MapperError::NoCamera) = self.feeder.image(mapper, i.camera, i.t_ns, &view) {
+            self.images_refused += 1;
         }
     }
 
@@ -251,6 +276,9 @@ struct Finished {
     submaps: Vec<(Se2, Vec<i8>)>,
     grid: GridParams,
     rejected: u64,
+    /// Counters of each camera track.
+    cameras: Vec<TrackStats>,
+    images_refused: u64,
     first_stamp: Option<i64>,
     last_stamp: i64,
 }
@@ -270,6 +298,7 @@ fn drive(
         first_stamp: None,
         last_stamp: 0,
         rejected: 0,
+        images_refused: 0,
         deadline: Duration::from_micros(settings.config.gpe.deadline_us),
         late: false,
         feeder: Feeder::new(
@@ -468,6 +497,8 @@ fn drive(
         stamps_repaired: driver.feeder.stamps_repaired,
         sync: driver.feeder.sync_stats(),
         rejected: driver.rejected,
+        cameras: mapper.camera_stats().collect(),
+        images_refused: driver.images_refused,
         first_stamp: driver.first_stamp,
         last_stamp: driver.last_stamp,
     })
@@ -631,7 +662,13 @@ fn finish(
                      (vertex ids as in graph.g2o)",
         }),
     );
-    let warnings = sync_warnings(&sync);
+    if input_stats.images > 0 {
+        report
+            .extra
+            .insert("cameras".into(), cameras_json(&f.cameras, f.images_refused));
+    }
+    let mut warnings = sync_warnings(&sync);
+    warnings.extend(camera_warnings(&f.cameras, f.images_refused));
     let mut us = f.scan_us.clone();
     us.sort_by(f64::total_cmp);
     let pct = |q: f64| {
@@ -656,6 +693,63 @@ fn finish(
         stats: s,
         warnings,
     })
+}
+
+/// The camera stage's counters for `report.json`.
+fn cameras_json(cameras: &[TrackStats], refused: u64) -> serde_json::Value {
+    let per_camera: Vec<_> = cameras
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| c.frames + c.out_of_order + c.unreadable > 0)
+        .map(|(i, c)| {
+            let mean = |sum: u64, n: u32| sum as f64 / f64::from(n.max(1));
+            json!({
+                "camera": i,
+                "frames": c.frames,
+                "out_of_order": c.out_of_order,
+                "unreadable": c.unreadable,
+                "low_feature_frames": c.low_features,
+                "features_min": c.min_features,
+                "features_mean": mean(c.features, c.frames),
+                "tracked_mean": mean(c.tracked, c.frames.saturating_sub(1)),
+            })
+        })
+        .collect();
+    json!({
+        "tracks": per_camera,
+        "refused": refused,
+        "note": "each image's FAST/BRIEF features matched to the same camera's previous image \
+                 (section III-B.1's front-end); camera frames do not join the pose graph yet. \
+                 low_feature_frames: fewer than 20 features; refused: images the mapper had no \
+                 storage for (a third camera, a frame above 1280x1024) or unusable sizes",
+    })
+}
+
+/// Warnings for camera images the mapper could not use.
+fn camera_warnings(cameras: &[TrackStats], refused: u64) -> Vec<String> {
+    let mut w = Vec::new();
+    if refused > 0 {
+        w.push(format!(
+            "{refused} camera images refused (a third camera, a frame larger than the camera \
+             storage, or unusable sizes); see report.json \"cameras\""
+        ));
+    }
+    for (i, c) in cameras.iter().enumerate() {
+        if c.out_of_order + c.unreadable > 0 {
+            w.push(format!(
+                "camera {i}: {} images out of order and {} unreadable were skipped",
+                c.out_of_order, c.unreadable
+            ));
+        }
+        if c.frames > 0 && u64::from(c.low_features) * 2 > u64::from(c.frames) {
+            w.push(format!(
+                "camera {i}: {} of {} images have fewer than 20 features (a plain ceiling, a \
+                 dark scene or a dirty lens?)",
+                c.low_features, c.frames
+            ));
+        }
+    }
+    w
 }
 
 /// Warnings for scans that reached the mapper without odometry around their time.
