@@ -8,20 +8,28 @@
 #![no_main]
 
 use aarch32_rt::entry;
-use cloi_core::workload::Section;
+use cloi_core::workload::{Section, WorkloadStorage};
+use cloi_firmware::statics::TakeOnce;
 use cloi_firmware::{report_stack, timer};
 use semihosting::{println, process};
+
+/// The storage of the sections too large for the stack (the camera frames).
+static STORAGE: TakeOnce<WorkloadStorage> = TakeOnce::new(WorkloadStorage::new());
 
 #[entry]
 fn main() -> ! {
     timer::enable();
+    let Some(storage) = STORAGE.take() else {
+        println!("status=error message=workload storage taken twice");
+        process::exit(1)
+    };
     println!(
         "firmware=cloi-firmware version={}",
         env!("CARGO_PKG_VERSION")
     );
     for section in Section::ALL {
         let start = timer::ticks();
-        let result = core::hint::black_box(section.run());
+        let result = core::hint::black_box(section.run(storage));
         let end = timer::ticks();
         let ticks = end - start;
         println!(

@@ -134,6 +134,16 @@ impl<'a> ImageView<'a> {
         self.format
     }
 
+    /// Bytes from one row to the next.
+    pub fn stride(&self) -> usize {
+        self.stride
+    }
+
+    /// The whole buffer, rows `stride` bytes apart.
+    pub fn bytes(&self) -> &'a [u8] {
+        self.data
+    }
+
     /// The pixels of row `y` (without padding), or `None` past the last row.
     pub fn row(&self, y: usize) -> Option<&'a [u8]> {
         let start = y.checked_mul(self.stride)?;

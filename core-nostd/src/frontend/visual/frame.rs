@@ -11,7 +11,7 @@ use super::fast::detect_pyramid;
 use super::image::{smooth_into, smoothed_bytes};
 use super::pyramid::pyramid_bytes;
 use super::{Descriptor, DetectStats, FastConfig, GrayImage, Keypoint, Pyramid};
-use crate::sensor::{ImageError, ImageView};
+use crate::sensor::{ImageError, ImageView, PixelFormat};
 
 /// Most features one frame keeps (a quarter-VGA frame at the default grid gives about 60 on a
 /// textured ceiling; the rest is headroom for larger frames).
@@ -134,7 +134,11 @@ impl FrameFeatures {
         }
         let (grey_bytes, rest) = scratch.split_at_mut(area);
         let (pyramid_store, smooth_store) = rest.split_at_mut(pyramid_bytes(w, h, LEVELS));
-        let grey = GrayImage::from_sensor(view, grey_bytes)?;
+        // A grey frame is read where it lies; colour is converted into the scratch.
+        let grey = match view.format() {
+            PixelFormat::Mono8 => GrayImage::new_checked(w, h, view.stride(), view.bytes())?,
+            PixelFormat::Rgb8 | PixelFormat::Bgr8 => GrayImage::from_sensor(view, grey_bytes)?,
+        };
         let pyramid =
             Pyramid::build(grey, LEVELS, pyramid_store).map_err(|_| FrameError::TooLarge)?;
         self.detect = detect_pyramid(&pyramid, cfg, corners);
@@ -205,6 +209,33 @@ mod tests {
             );
         }
         assert!(f.keypoints().iter().any(|k| k.level > 0));
+    }
+
+    #[test]
+    fn a_grey_colour_frame_gives_the_grey_frames_features() {
+        let (w, h) = (160, 120);
+        let grey = Scene::random(9, w, h, 20).render(&View::new(w, h, 0.3, [0.0, 0.0]));
+        let rgb: std::vec::Vec<u8> = grey.iter().flat_map(|&v| [v, v, v]).collect();
+        let colour = ImageView::new_checked(
+            Timestamp::from_nanos(0),
+            w,
+            h,
+            3 * w,
+            PixelFormat::Rgb8,
+            &rgb,
+        )
+        .expect("valid sizes");
+        let mut scratch = std::vec![0u8; scratch_bytes(w, h)];
+        let mut corners = [Keypoint::default(); MAX_FEATURES];
+        let (mut a, mut b) = (FrameFeatures::new(), FrameFeatures::new());
+        let cfg = FastConfig::default();
+        a.extract(&view(&grey, w, h), &cfg, &mut scratch, &mut corners)
+            .expect("sized scratch");
+        b.extract(&colour, &cfg, &mut scratch, &mut corners)
+            .expect("sized scratch");
+        assert!(a.len() > 10);
+        assert_eq!(a.keypoints(), b.keypoints());
+        assert_eq!(a.descriptors(), b.descriptors());
     }
 
     #[test]

@@ -187,29 +187,78 @@ impl<'a> Pyramid<'a> {
 
 /// Writes `src` halved into `dst` (`dst_width` bytes a row).
 fn halve(src: &GrayImage<'_>, dst: &mut [u8], dst_width: usize) {
-    const K: [u32; 4] = [1, 3, 3, 1];
-    if dst_width == 0 {
+    if dst_width == 0 || src.width() == 0 || src.height() == 0 {
         return;
     }
+    let last_row = src.height() - 1;
     for (y, row) in dst.chunks_exact_mut(dst_width).enumerate() {
-        let y0 = 2 * y as isize - 1;
+        // The kernel's four rows, 2y - 1 .. 2y + 2, replicated at the borders.
+        let rows = [0usize, 1, 2, 3].map(|k| (2 * y + k).saturating_sub(1).min(last_row));
+        let [Some(r0), Some(r1), Some(r2), Some(r3)] = rows.map(|r| src.row(r)) else {
+            return;
+        };
         for (x, px) in row.iter_mut().enumerate() {
-            let x0 = 2 * x as isize - 1;
-            let mut sum = 0u32;
-            for (dy, ky) in K.iter().enumerate() {
-                for (dx, kx) in K.iter().enumerate() {
-                    let v = src.clamped(x0 + dx as isize, y0 + dy as isize);
-                    sum += ky * kx * u32::from(v);
-                }
-            }
+            let h = |r: &[u8]| weigh_1331(r, 2 * x);
+            let sum = h(r0) + 3 * (h(r1) + h(r2)) + h(r3);
             *px = u8::try_from((sum + 32) >> 6).unwrap_or(u8::MAX);
         }
     }
 }
 
+/// `r[c - 1] + 3 r[c] + 3 r[c + 1] + r[c + 2]`, the columns replicated at the row's ends.
+#[inline(always)]
+fn weigh_1331(r: &[u8], c: usize) -> u32 {
+    let v = |i: u8| u32::from(i);
+    if let Some(&[a, b, cc, d]) = c.checked_sub(1).and_then(|s| r.get(s..s + 4)) {
+        return v(a) + 3 * (v(b) + v(cc)) + v(d);
+    }
+    // A border column: clamp each tap.
+    let last = r.len().saturating_sub(1);
+    let at = |i: usize| v(r.get(i.min(last)).copied().unwrap_or(0));
+    at(c.saturating_sub(1)) + 3 * (at(c) + at(c + 1)) + at(c + 2)
+}
+
 #[cfg(test)]
 mod tests {
+    extern crate std;
+
     use super::*;
+    use proptest::prelude::*;
+
+    /// The [1 3 3 1]^2 / 64 halving written tap by tap with clamped reads: the definition the
+    /// separable loop must reproduce exactly.
+    fn halve_reference(src: &GrayImage<'_>, dst_w: usize, dst_h: usize) -> std::vec::Vec<u8> {
+        let k = [1u32, 3, 3, 1];
+        let mut out = std::vec![0u8; dst_w * dst_h];
+        for (i, px) in out.iter_mut().enumerate() {
+            let (x, y) = ((i % dst_w) as isize, (i / dst_w) as isize);
+            let mut sum = 0;
+            for (dy, ky) in k.iter().enumerate() {
+                for (dx, kx) in k.iter().enumerate() {
+                    let v = src.clamped(2 * x - 1 + dx as isize, 2 * y - 1 + dy as isize);
+                    sum += ky * kx * u32::from(v);
+                }
+            }
+            *px = ((sum + 32) >> 6) as u8;
+        }
+        out
+    }
+
+    proptest! {
+        #[test]
+        fn halving_equals_the_tap_by_tap_definition(
+            w in 2usize..40, h in 2usize..40, seed in any::<u64>(),
+        ) {
+            let data: std::vec::Vec<u8> = (0..w * h)
+                .map(|i| (seed.wrapping_mul(i as u64 + 1).rotate_left(23) >> 56) as u8)
+                .collect();
+            let src = GrayImage::new_checked(w, h, w, &data).unwrap();
+            let (dw, dh) = (w / 2, h / 2);
+            let mut out = std::vec![0u8; dw * dh];
+            halve(&src, &mut out, dw);
+            prop_assert_eq!(out, halve_reference(&src, dw, dh));
+        }
+    }
 
     const W: usize = 96;
     const H: usize = 96;

@@ -126,6 +126,15 @@ impl CameraTrack {
         }
     }
 
+    /// Forgets every frame and counter, in place (the track is too large to rebuild on a small
+    /// stack).
+    pub fn reset(&mut self) {
+        self.sets.iter_mut().for_each(FrameFeatures::clear);
+        self.newest = 0;
+        self.last_stamp = None;
+        self.stats = TrackStats::default();
+    }
+
     /// The counters so far.
     pub fn stats(&self) -> TrackStats {
         self.stats
