@@ -313,6 +313,46 @@ mod tests {
         assert_eq!((s.frames, s.out_of_order, s.unreadable), (2, 1, 1));
     }
 
+    proptest::proptest! {
+        /// Any frame a driver can lend (every size, stride, pixel format and content, stamps in
+        /// any order) is tracked or refused with a counted error, never a panic.
+        #[test]
+        fn any_frame_is_tracked_or_refused(
+            w in 1usize..90, h in 1usize..70, pad in 0usize..5, colour in proptest::bool::ANY,
+            seed in proptest::num::u64::ANY, stamps in proptest::collection::vec(-3i64..3, 1..4),
+        ) {
+            let format = if colour { PixelFormat::Bgr8 } else { PixelFormat::Mono8 };
+            let stride = w * format.bytes_per_pixel() + pad;
+            let data: std::vec::Vec<u8> = (0..stride * h)
+                .map(|i| (seed.wrapping_mul(i as u64 | 1).rotate_left(29) >> 56) as u8)
+                .collect();
+            // Scratch for frames up to 64 x 48: larger ones must be refused.
+            let mut bench = Bench::new(64, 48);
+            let mut cam = CameraTrack::new();
+            for &t in &stamps {
+                let view = ImageView::new_checked(Timestamp::from_nanos(t), w, h, stride, format, &data)
+                    .expect("valid sizes");
+                let mut s = TrackScratch {
+                    bytes: &mut bench.bytes,
+                    corners: &mut bench.corners,
+                    matches: &mut bench.matches,
+                };
+                match cam.track(t, &view, &TrackConfig::default(), &mut s) {
+                    Ok(step) => proptest::prop_assert!(step.tracked <= step.features),
+                    Err(TrackError::Frame(FrameError::TooLarge)) => {
+                        proptest::prop_assert!(scratch_bytes(w, h) > scratch_bytes(64, 48));
+                    }
+                    Err(_) => {}
+                }
+            }
+            let st = cam.stats();
+            proptest::prop_assert_eq!(
+                (st.frames + st.out_of_order + st.unreadable) as usize,
+                stamps.len()
+            );
+        }
+    }
+
     #[test]
     fn a_plain_ceiling_is_a_low_feature_frame() {
         let (w, h) = (160, 120);
