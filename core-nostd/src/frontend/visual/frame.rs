@@ -179,20 +179,21 @@ mod tests {
             .expect("valid sizes")
     }
 
+    /// The features of `frame` with the default settings and scratch of its size.
+    fn features(frame: &ImageView<'_>) -> FrameFeatures {
+        let mut f = FrameFeatures::new();
+        let mut scratch = std::vec![0u8; scratch_bytes(frame.width(), frame.height())];
+        let mut corners = [Keypoint::default(); MAX_FEATURES];
+        f.extract(frame, &FastConfig::default(), &mut scratch, &mut corners)
+            .expect("sized scratch");
+        f
+    }
+
     #[test]
     fn features_of_a_textured_frame_match_the_single_level_pipeline() {
         let (w, h) = (320, 240);
         let img = Scene::random(7, w, h, 40).render(&View::new(w, h, 0.0, [0.0, 0.0]));
-        let mut f = FrameFeatures::new();
-        let mut scratch = std::vec![0u8; scratch_bytes(w, h)];
-        let mut corners = [Keypoint::default(); MAX_FEATURES];
-        f.extract(
-            &view(&img, w, h),
-            &FastConfig::default(),
-            &mut scratch,
-            &mut corners,
-        )
-        .expect("sized scratch");
+        let f = features(&view(&img, w, h));
         assert!(f.len() >= 40, "{} features", f.len());
         assert_eq!(f.keypoints().len(), f.descriptors().len());
         // Every level-0 feature is one the plain single-level detector and descriptor find.
@@ -225,14 +226,7 @@ mod tests {
             &rgb,
         )
         .expect("valid sizes");
-        let mut scratch = std::vec![0u8; scratch_bytes(w, h)];
-        let mut corners = [Keypoint::default(); MAX_FEATURES];
-        let (mut a, mut b) = (FrameFeatures::new(), FrameFeatures::new());
-        let cfg = FastConfig::default();
-        a.extract(&view(&grey, w, h), &cfg, &mut scratch, &mut corners)
-            .expect("sized scratch");
-        b.extract(&colour, &cfg, &mut scratch, &mut corners)
-            .expect("sized scratch");
+        let (a, b) = (features(&view(&grey, w, h)), features(&colour));
         assert!(a.len() > 10);
         assert_eq!(a.keypoints(), b.keypoints());
         assert_eq!(a.descriptors(), b.descriptors());
@@ -259,16 +253,6 @@ mod tests {
     fn a_plain_frame_has_no_features() {
         let (w, h) = (160, 120);
         let img = std::vec![90u8; w * h];
-        let mut f = FrameFeatures::new();
-        let mut scratch = std::vec![0u8; scratch_bytes(w, h)];
-        let mut corners = [Keypoint::default(); MAX_FEATURES];
-        f.extract(
-            &view(&img, w, h),
-            &FastConfig::default(),
-            &mut scratch,
-            &mut corners,
-        )
-        .expect("sized scratch");
-        assert!(f.is_empty());
+        assert!(features(&view(&img, w, h)).is_empty());
     }
 }
