@@ -9,6 +9,11 @@ use cloi_core::sensor::PixelFormat;
 
 use crate::ros2::{CompressedImage, Image};
 
+/// Largest side of a compressed image that is decoded, pixels.
+pub const MAX_SIDE: u32 = 4096;
+/// Most bytes a decoder may allocate for one compressed image (a 4096 x 4096 RGBA frame).
+const MAX_DECODE_BYTES: u64 = 4 * 4096 * 4096;
+
 /// Uncompressed pixels with their layout.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Pixels {
@@ -74,9 +79,20 @@ pub fn from_raw(msg: Image) -> Result<Pixels> {
 /// # Errors
 /// Data the `image` crate cannot decode (JPEG and PNG are built in).
 pub fn from_compressed(msg: &CompressedImage) -> Result<Pixels> {
-    let img = image::load_from_memory(&msg.data)
-        .map_err(|e| anyhow!("compressed image ({:?}) not decoded: {e}", msg.format))?
-        .into_luma8();
+    let not_decoded = |e: &dyn std::fmt::Display| {
+        anyhow!("compressed image ({:?}) not decoded: {e}", msg.format)
+    };
+    let mut reader = image::ImageReader::new(std::io::Cursor::new(&msg.data))
+        .with_guessed_format()
+        .map_err(|e| not_decoded(&e))?;
+    // A damaged or hostile header may claim any size: decode nothing larger than a camera
+    // the mapper could take, and never allocate more than such a frame in colour needs.
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(MAX_SIDE);
+    limits.max_image_height = Some(MAX_SIDE);
+    limits.max_alloc = Some(MAX_DECODE_BYTES);
+    reader.limits(limits);
+    let img = reader.decode().map_err(|e| not_decoded(&e))?.into_luma8();
     let (width, height) = (img.width() as usize, img.height() as usize);
     Ok(Pixels {
         width,
@@ -143,5 +159,29 @@ mod tests {
             ..msg
         };
         assert!(from_compressed(&bad).is_err());
+    }
+
+    #[test]
+    fn a_png_claiming_a_huge_size_is_refused_before_decoding() {
+        // A valid 1 x 1 grey PNG whose header (and its CRC) claims 20,000 x 20,000 pixels: 400 MB,
+        // which the decoder would allocate under its own default limit of 512 MiB.
+        let mut png = Vec::new();
+        image::GrayImage::new(1, 1)
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .unwrap();
+        // IHDR data sits after the 8-byte signature and the chunk's length and type.
+        let side = 20_000u32.to_be_bytes();
+        png[16..20].copy_from_slice(&side);
+        png[20..24].copy_from_slice(&side);
+        let crc = crc32fast::hash(&png[12..29]);
+        png[29..33].copy_from_slice(&crc.to_be_bytes());
+        let msg = CompressedImage {
+            header: Header::default(),
+            format: "png".into(),
+            data: png,
+        };
+        let e = from_compressed(&msg).unwrap_err().to_string();
+        eprintln!("{e}");
+        assert!(e.contains("not decoded") && e.contains("limit"), "{e}");
     }
 }
