@@ -207,7 +207,21 @@ pub struct RelationScore {
     pub pairs_missing: usize,
     /// Time tolerance used to match stamps (s); 0 means exact.
     pub tolerance_s: f64,
+    /// Mean translation error (m) of the relations whose two times are less than
+    /// [`REVISIT_SECONDS`] apart: the trajectory's local accuracy (`None` without such pairs).
+    pub trans_mean_local_m: Option<f64>,
+    /// Mean translation error (m) of the relations [`REVISIT_SECONDS`] or more apart: places
+    /// the robot came back to, where a real-time pose carries the drift until a loop closes.
+    pub trans_mean_revisit_m: Option<f64>,
+    /// Relations in the local mean.
+    pub pairs_local: usize,
+    /// Relations in the revisit mean.
+    pub pairs_revisit: usize,
 }
+
+/// Relations whose times are at least this far apart count as revisits, seconds: longer than
+/// a robot takes to pass one place (1 m at walking pace and a turn), shorter than any loop.
+pub const REVISIT_SECONDS: f64 = 30.0;
 
 fn mean_std(v: &[f64]) -> (f64, f64) {
     let n = v.len() as f64;
@@ -228,6 +242,8 @@ pub fn score(
     let tol = (tolerance_s * 1e9).round() as i64;
     let mut trans = Vec::with_capacity(relations.len());
     let mut rot = Vec::with_capacity(relations.len());
+    let (mut local, mut revisit) = (Vec::new(), Vec::new());
+    let revisit_ns = (REVISIT_SECONDS * 1e9) as i64;
     for r in relations {
         let (Some(p1), Some(p2)) = (traj.at(r.t1_ns, tol), traj.at(r.t2_ns, tol)) else {
             continue;
@@ -235,6 +251,11 @@ pub fn score(
         let e = r.delta.inverse().compose(&p1.between(&p2));
         trans.push(e.x.hypot(e.y));
         rot.push(wrap_angle(e.theta).abs().to_degrees());
+        if r.t2_ns.abs_diff(r.t1_ns) >= revisit_ns.unsigned_abs() {
+            revisit.push(e.x.hypot(e.y));
+        } else {
+            local.push(e.x.hypot(e.y));
+        }
     }
     if trans.is_empty() {
         bail!(
@@ -252,6 +273,10 @@ pub fn score(
         pairs_used: trans.len(),
         pairs_missing: relations.len() - trans.len(),
         tolerance_s,
+        trans_mean_local_m: (!local.is_empty()).then(|| mean_std(&local).0),
+        trans_mean_revisit_m: (!revisit.is_empty()).then(|| mean_std(&revisit).0),
+        pairs_local: local.len(),
+        pairs_revisit: revisit.len(),
     })
 }
 
@@ -335,6 +360,32 @@ mod tests {
         assert_eq!(pairs, vec![(1, 2), (1, 4), (2, 4)]);
         let s = score(&reference, &rels, 0.0).unwrap();
         assert!(s.trans_mean_m < 1e-12);
+    }
+
+    #[test]
+    fn revisits_are_scored_apart_from_local_pairs() {
+        let s_ns = |s: i64| s * 1_000_000_000;
+        // Reference: out along x and back to the start after 60 s.
+        let reference = PlanarTrajectory {
+            poses: vec![
+                (s_ns(0), Se2::new(0.0, 0.0, 0.0)),
+                (s_ns(1), Se2::new(0.5, 0.0, 0.0)),
+                (s_ns(60), Se2::new(0.1, 0.0, 0.0)),
+            ],
+        };
+        // The estimate is locally right but has drifted 0.3 m in y by the revisit.
+        let estimate = PlanarTrajectory {
+            poses: vec![
+                (s_ns(0), Se2::new(0.0, 0.0, 0.0)),
+                (s_ns(1), Se2::new(0.5, 0.0, 0.0)),
+                (s_ns(60), Se2::new(0.1, 0.3, 0.0)),
+            ],
+        };
+        let rels = relations_from_reference(&reference, 1.0);
+        let s = score(&estimate, &rels, 0.0).unwrap();
+        assert_eq!((s.pairs_local, s.pairs_revisit), (1, 2));
+        assert!(s.trans_mean_local_m.unwrap() < 1e-12);
+        assert!((s.trans_mean_revisit_m.unwrap() - 0.3).abs() < 1e-9, "{s:?}");
     }
 
     #[test]
