@@ -385,7 +385,10 @@ mod tests {
         let s = score(&estimate, &rels, 0.0).unwrap();
         assert_eq!((s.pairs_local, s.pairs_revisit), (1, 2));
         assert!(s.trans_mean_local_m.unwrap() < 1e-12);
-        assert!((s.trans_mean_revisit_m.unwrap() - 0.3).abs() < 1e-9, "{s:?}");
+        assert!(
+            (s.trans_mean_revisit_m.unwrap() - 0.3).abs() < 1e-9,
+            "{s:?}"
+        );
     }
 
     #[test]

@@ -79,9 +79,8 @@ pub fn from_raw(msg: Image) -> Result<Pixels> {
 /// # Errors
 /// Data the `image` crate cannot decode (JPEG and PNG are built in).
 pub fn from_compressed(msg: &CompressedImage) -> Result<Pixels> {
-    let not_decoded = |e: &dyn std::fmt::Display| {
-        anyhow!("compressed image ({:?}) not decoded: {e}", msg.format)
-    };
+    let not_decoded =
+        |e: &dyn std::fmt::Display| anyhow!("compressed image ({:?}) not decoded: {e}", msg.format);
     let mut reader = image::ImageReader::new(std::io::Cursor::new(&msg.data))
         .with_guessed_format()
         .map_err(|e| not_decoded(&e))?;

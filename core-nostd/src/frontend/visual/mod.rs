@@ -13,6 +13,7 @@
 //! * [`fast`]: FAST-9 corners, spread by a grid with a low-feature fallback, and oriented.
 //! * [`frame`]: the features of one frame (the stages above in order) in fixed storage.
 //! * [`track`]: one camera's frames matched to its previous frame, and the low-feature count.
+//! * [`triangulate`]: a match between two frames of known pose as a 3D point.
 //!
 //! Everything works on borrowed or fixed-capacity storage: nothing allocates, nothing recurses,
 //! nothing reads a clock, and no input makes it panic. Pixels are `f32`, geometry `f64`, and
@@ -26,6 +27,7 @@ pub mod image;
 pub mod matching;
 pub mod pyramid;
 pub mod track;
+pub mod triangulate;
 
 pub use brief::{describe, describe_all, Descriptor};
 pub use camera::{CameraError, CameraExtrinsic, CameraModel, Intrinsics, Kb4, Pinhole};
