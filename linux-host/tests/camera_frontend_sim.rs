@@ -18,6 +18,7 @@
 mod visual_sim;
 
 use cloi_core::frontend::visual::{FastConfig, MatchConfig};
+use cloi_core::Se2;
 use cloi_sim::builtin;
 use cloi_sim::engine::SensorSet;
 use cloi_sim::world::{FaultKind, FaultSpec, LegSpec, RouteSpec, WorldFile};
@@ -244,4 +245,144 @@ fn a_dirty_lens_keeps_guided_matches_right() {
     let r = measure(&sim, &rec);
     assert!(r.frames >= 38, "{r:?}");
     assert!(r.guided[0].ratio() >= 0.8, "{r:?}");
+}
+
+/// Frames between the two views of a triangulation: 1.2 s, about 0.35 m at the cleaner's
+/// cruise speed, the baseline a ceiling 2.4 m up needs for a depth within a tenth from
+/// whole-pixel corners (0.5 s gives about 3 degrees of parallax, too little).
+const BASELINE_FRAMES: usize = 12;
+
+/// What triangulating the right matches of every pair [`BASELINE_FRAMES`] apart gave.
+#[derive(Debug, Default)]
+struct Triangulated {
+    right: usize,
+    low_parallax: usize,
+    refused: usize,
+    /// Error over the depth of each triangulated point, sorted.
+    relative_errors: Vec<f64>,
+    /// Largest error of the second view's pose the pairs were given: metres, radians.
+    worst_pose_error: [f64; 2],
+}
+
+impl Triangulated {
+    fn quantile(&self, q: f64) -> f64 {
+        let n = self.relative_errors.len();
+        self.relative_errors[((n - 1) as f64 * q).round() as usize]
+    }
+
+    fn within(&self, fraction: f64) -> usize {
+        self.relative_errors
+            .iter()
+            .filter(|&&e| e < fraction)
+            .count()
+    }
+}
+
+/// Triangulates the right brute-force matches of the home's own route (it starts along a
+/// straight stretch, where the two views stand apart; the short route of the matching tests
+/// mostly turns on the spot) with the first view at its true pose and the second at
+/// `second_pose(true pose A, true pose B, wheel odometry from A to B)`, against the world
+/// point the first pixel truly sees.
+fn triangulate_home(second_pose: impl Fn(Se2, Se2, Se2) -> Se2) -> Triangulated {
+    use cloi_core::frontend::visual::triangulate::{
+        triangulate, CameraPose, Observation, TriangulateConfig, TriangulateError,
+    };
+    use cloi_core::frontend::visual::Pyramid;
+    use nalgebra::Vector2;
+
+    let mut world = World::from_file(&builtin::builtin("home", DURATION).expect("home"));
+    world.faults.clear();
+    let (sim, rec) = simulate(world);
+    let cam = sim.rig.cameras[0];
+    let g = Geometry {
+        world: &sim.world,
+        model: cam.core_model().expect("a valid lens"),
+        extrinsic: cam.core_extrinsic(),
+    };
+    let (fast, mcfg, tcfg) = (
+        FastConfig::default(),
+        MatchConfig::default(),
+        TriangulateConfig::default(),
+    );
+    let shots: Vec<_> = rec.shots.iter().collect();
+    let feats: Vec<Features> = shots.iter().map(|s| extract(&s.frame, &fast).0).collect();
+    let mut r = Triangulated::default();
+    for i in 0..feats.len().saturating_sub(BASELINE_FRAMES) {
+        let (sa, sb) = (shots[i], shots[i + BASELINE_FRAMES]);
+        let (a, b) = (&feats[i], &feats[i + BASELINE_FRAMES]);
+        let (truth_a, truth_b) = (sim.state(sa.t).pose, sim.state(sb.t).pose);
+        let odo = rec
+            .odometry_at(sa.t)
+            .zip(rec.odometry_at(sb.t))
+            .map(|(oa, ob)| oa.between(&ob))
+            .expect("odometry over the run");
+        let given_b = second_pose(truth_a, truth_b, odo);
+        let e = truth_b.between(&given_b);
+        r.worst_pose_error[0] = r.worst_pose_error[0].max(e.x.hypot(e.y));
+        r.worst_pose_error[1] = r.worst_pose_error[1].max(e.theta.abs());
+        let (pose_a, pose_b) = (
+            CameraPose::of_robot(&truth_a, &g.extrinsic),
+            CameraPose::of_robot(&given_b, &g.extrinsic),
+        );
+        for m in brute_force(a, b, &mcfg) {
+            if !g.is_correct(&truth_a, &truth_b, a, b, &m) {
+                continue;
+            }
+            r.right += 1;
+            // FAST positions are whole pixels of their level: half a level pixel of noise.
+            let obs = |f: &Features, k: usize| Observation {
+                px: Vector2::new(f64::from(f.positions[k][0]), f64::from(f.positions[k][1])),
+                sigma_px: 0.5 * f64::from(Pyramid::scale(usize::from(f.keypoints[k].level))),
+            };
+            let (oa, ob) = (obs(a, m.query), obs(b, m.train));
+            match triangulate(&g.model, &pose_a, &oa, &pose_b, &ob, &tcfg) {
+                Ok(w) => {
+                    let (truth, _) = g
+                        .world_point(&truth_a, a.positions[m.query])
+                        .expect("a surface");
+                    let depth = (truth - pose_a.centre).norm();
+                    r.relative_errors.push((w.position - truth).norm() / depth);
+                }
+                Err(TriangulateError::LowParallax) => r.low_parallax += 1,
+                Err(_) => r.refused += 1,
+            }
+        }
+    }
+    r.relative_errors.sort_by(f64::total_cmp);
+    eprintln!(
+        "{} right matches {BASELINE_FRAMES} frames apart (second pose off by up to {:.3} m, \
+         {:.4} rad): {} triangulated, {} with too little parallax, {} refused; error / depth \
+         median {:.3}, p90 {:.3}, {} within 10 %",
+        r.right,
+        r.worst_pose_error[0],
+        r.worst_pose_error[1],
+        r.relative_errors.len(),
+        r.low_parallax,
+        r.refused,
+        r.quantile(0.5),
+        r.quantile(0.9),
+        r.within(0.1),
+    );
+    r
+}
+
+/// Two-view triangulation (`cloi_core::frontend::visual::triangulate`) from exact poses: a
+/// right match with enough parallax lands within its expected error of the true point. The
+/// same pairs with the second pose predicted by the wheel odometry alone are printed
+/// (`--nocapture`): how far the visual odometry must correct the odometry before its points
+/// are usable.
+#[test]
+fn right_matches_triangulate_near_the_true_world_points() {
+    let r = triangulate_home(|_, truth_b, _| truth_b);
+    let n = r.relative_errors.len();
+    assert!(
+        n >= 20,
+        "{n} points triangulated of {} right matches",
+        r.right
+    );
+    // Whole-pixel corners with at least the parallax for a tenth of the depth.
+    assert!(r.quantile(0.5) < 0.05, "{r:?}");
+    assert!(r.within(0.1) * 10 >= n * 8, "{r:?}");
+    assert_eq!(r.refused, 0, "{r:?}");
+    let _ = triangulate_home(|truth_a, _, odo| truth_a.compose(&odo));
 }

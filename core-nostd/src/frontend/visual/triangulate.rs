@@ -5,10 +5,12 @@
 //! The robot moves on the floor, so each frame's camera pose is its planar robot pose (from
 //! the wheel odometry and gyro, or the GPE) composed with the fixed mounting
 //! ([`CameraExtrinsic`]). Each pixel is unprojected to a bearing; the point is the midpoint of
-//! the shortest segment between the two rays. It is refused when the rays are too close to
-//! parallel to fix a depth (the camera moved along the ray: little parallax), when it lies
-//! behind either camera, or when the rays pass farther apart than the pixel noise allows at
-//! that depth (a wrong match or a wrong pose).
+//! the shortest segment between the two rays. Each pixel's noise (in pixels, over the focal
+//! length) is an angular noise of its ray, and the depth error it causes is about that noise
+//! over the parallax, the angle between the rays. A pair is refused when that expected error
+//! is too large a share of the depth (the camera moved little, or along the ray), when the
+//! point lies behind either camera, or when the rays pass farther apart than their noise
+//! allows at that depth (a wrong match or a wrong pose).
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 
@@ -19,22 +21,31 @@ use crate::geom::Se2;
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct TriangulateConfig {
-    /// Smallest angle between the two rays at the point, radians. Below it the depth is
-    /// mostly noise (ORB-SLAM's choice is about one degree).
-    pub min_parallax: f64,
-    /// Largest distance between the two rays at their closest points, as a fraction of the
-    /// point's depth: the angle the pixel noise and the pose error may explain.
-    pub max_gap_per_depth: f64,
+    /// Largest expected depth error, as a fraction of the depth: the two observations'
+    /// angular noise over the parallax. A narrower angle between the rays fixes no depth.
+    pub max_relative_depth_error: f64,
+    /// The rays may pass at most this many standard deviations of their angular noise (at
+    /// the point's depth) apart; farther, the match or a pose is wrong.
+    pub gap_sigmas: f64,
 }
 
 impl Default for TriangulateConfig {
     fn default() -> Self {
         TriangulateConfig {
-            min_parallax: 1.0_f64.to_radians(),
-            // About 4 px at the 250 px focal length of a quarter-VGA camera.
-            max_gap_per_depth: 0.016,
+            max_relative_depth_error: 0.1,
+            gap_sigmas: 3.0,
         }
     }
+}
+
+/// One sighting of a feature: its pixel and the standard deviation of that position (the
+/// detector's jitter, larger on coarser pyramid levels).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Observation {
+    /// Pixel, level-0 coordinates.
+    pub px: Vector2<f64>,
+    /// Standard deviation of the position, level-0 pixels.
+    pub sigma_px: f64,
 }
 
 /// Why a match gave no point.
@@ -60,6 +71,8 @@ pub struct WorldPoint {
     pub parallax: f64,
     /// Distance between the rays at their closest points, metres.
     pub gap: f64,
+    /// Expected standard deviation of the depth from the first camera, metres.
+    pub depth_sigma: f64,
 }
 
 /// Where a camera is: its optical centre and its camera-to-world rotation.
@@ -89,30 +102,36 @@ impl CameraPose {
     }
 }
 
-/// The world point seen at pixel `a` by the camera at `pose_a` and at pixel `b` by the camera
-/// at `pose_b` (the same camera model for both).
+/// The world point seen in observation `a` by the camera at `pose_a` and in `b` by the
+/// camera at `pose_b` (the same camera model for both).
 ///
 /// # Errors
 /// [`TriangulateError`] when the pair does not fix a point (see the module docs).
 pub fn triangulate(
     model: &CameraModel,
     pose_a: &CameraPose,
-    a: &Vector2<f64>,
+    a: &Observation,
     pose_b: &CameraPose,
-    b: &Vector2<f64>,
+    b: &Observation,
     cfg: &TriangulateConfig,
 ) -> Result<WorldPoint, TriangulateError> {
-    let ray = |pose: &CameraPose, px| {
+    let ray = |pose: &CameraPose, o: &Observation| {
         model
-            .unproject(px)
+            .unproject(&o.px)
             .map(|d| pose.rotation * d)
             .ok_or(TriangulateError::NoRay)
     };
     let (da, db) = (ray(pose_a, a)?, ray(pose_b, b)?);
+    // Angular noise of each ray: pixel noise over the focal length (the centre's, which a
+    // fisheye's edge exceeds a little).
+    let k = model.intrinsics();
+    let focal = k.fx.min(k.fy);
+    let (noise_a, noise_b) = (a.sigma_px / focal, b.sigma_px / focal);
     // Unit bearings: the cosine of the angle between the rays is their dot product.
     let cos = da.dot(&db).clamp(-1.0, 1.0);
     let parallax = libm::acos(cos);
-    if parallax < cfg.min_parallax {
+    let relative = (noise_a + noise_b) / parallax;
+    if !(relative <= cfg.max_relative_depth_error) {
         return Err(TriangulateError::LowParallax);
     }
     // Closest points o_a + s d_a and o_b + t d_b (both directions of unit length).
@@ -126,13 +145,14 @@ pub fn triangulate(
     }
     let (pa, pb) = (pose_a.centre + da * s, pose_b.centre + db * t);
     let gap = (pa - pb).norm();
-    if gap > cfg.max_gap_per_depth * s.min(t) {
+    if gap > cfg.gap_sigmas * libm::hypot(noise_a * s, noise_b * t) {
         return Err(TriangulateError::Inconsistent);
     }
     Ok(WorldPoint {
         position: (pa + pb) * 0.5,
         parallax,
         gap,
+        depth_sigma: relative * s,
     })
 }
 
@@ -156,15 +176,19 @@ mod tests {
         (model, mount)
     }
 
-    fn pixel(model: &CameraModel, pose: &CameraPose, p: &Vector3<f64>) -> Vector2<f64> {
-        model.project(&pose.world_to_camera(p)).expect("in view")
+    fn pixel(model: &CameraModel, pose: &CameraPose, p: &Vector3<f64>) -> Observation {
+        Observation {
+            px: model.project(&pose.world_to_camera(p)).expect("in view"),
+            sigma_px: 0.5,
+        }
     }
 
     #[test]
     fn a_ceiling_point_seen_from_two_odometry_poses_is_recovered() {
         let (model, mount) = cleaner_camera();
         let pa = CameraPose::of_robot(&Se2::new(1.0, 2.0, 0.3), &mount);
-        let pb = CameraPose::of_robot(&Se2::new(1.25, 2.08, 0.35), &mount);
+        // Half a metre on: enough parallax for a tenth of the depth at half a pixel of noise.
+        let pb = CameraPose::of_robot(&Se2::new(1.45, 2.2, 0.4), &mount);
         let cfg = TriangulateConfig::default();
         for point in [
             Vector3::new(2.5, 2.6, 2.4),
@@ -180,12 +204,17 @@ mod tests {
             assert!(got.gap < 1e-6);
             // Half a pixel of noise on one side moves the point along the ray by about depth
             // x (noise / focal length) / parallax, to first order.
-            let noisy = b + Vector2::new(0.5, -0.3);
+            let noisy = Observation {
+                px: b.px + Vector2::new(0.5, -0.3),
+                ..b
+            };
             let near = triangulate(&model, &pa, &a, &pb, &noisy, &cfg).expect("a point");
             let depth = (point - pa.centre).norm();
             let expected = depth * (0.6 / 120.0) / got.parallax;
             let moved = (near.position - point).norm();
             assert!(moved < 1.5 * expected, "{moved} m against {expected} m");
+            // Half a pixel on each side is about the error the point expects.
+            assert!(moved < 2.0 * got.depth_sigma, "{moved} m against {:?}", got);
         }
     }
 
@@ -203,14 +232,15 @@ mod tests {
         );
         // A wrong match: the second pixel 40 px away from where the point appears.
         let pb = CameraPose::of_robot(&Se2::new(0.3, 0.0, 0.0), &mount);
-        let b = pixel(&model, &pb, &point) + Vector2::new(0.0, 40.0);
+        let mut b = pixel(&model, &pb, &point);
+        b.px.y += 40.0;
         assert!(matches!(
             triangulate(&model, &pa, &a, &pb, &b, &cfg),
             Err(TriangulateError::Inconsistent | TriangulateError::Behind)
         ));
         // Rays that meet behind the cameras: camera b looks along the line from a point X
         // behind camera a, through its own centre.
-        let da = (pa.rotation * model.unproject(&a).expect("a ray")).normalize();
+        let da = (pa.rotation * model.unproject(&a.px).expect("a ray")).normalize();
         let x = pa.centre - da;
         let q = pb.centre + (pb.centre - x) * 2.0;
         let b = pixel(&model, &pb, &q);
