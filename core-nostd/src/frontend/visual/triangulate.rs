@@ -131,7 +131,9 @@ pub fn triangulate(
     let cos = da.dot(&db).clamp(-1.0, 1.0);
     let parallax = libm::acos(cos);
     let relative = (noise_a + noise_b) / parallax;
-    if !(relative <= cfg.max_relative_depth_error) {
+    // NaN (no parallax at all) is refused too.
+    let depth_fixed = relative.is_finite() && relative <= cfg.max_relative_depth_error;
+    if !depth_fixed {
         return Err(TriangulateError::LowParallax);
     }
     // Closest points o_a + s d_a and o_b + t d_b (both directions of unit length).
