@@ -14,6 +14,8 @@
 //! * [`frame`]: the features of one frame (the stages above in order) in fixed storage.
 //! * [`track`]: one camera's frames matched to its previous frame, and the low-feature count.
 //! * [`triangulate`]: a match between two frames of known pose as a 3D point.
+//! * [`two_view`]: the heading change and direction of travel between two frames from their
+//!   matches, the distance from the odometry.
 //!
 //! Everything works on borrowed or fixed-capacity storage: nothing allocates, nothing recurses,
 //! nothing reads a clock, and no input makes it panic. Pixels are `f32`, geometry `f64`, and
@@ -28,6 +30,7 @@ pub mod matching;
 pub mod pyramid;
 pub mod track;
 pub mod triangulate;
+pub mod two_view;
 
 pub use brief::{describe, describe_all, Descriptor};
 pub use camera::{CameraError, CameraExtrinsic, CameraModel, Intrinsics, Kb4, Pinhole};
