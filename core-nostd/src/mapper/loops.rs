@@ -153,6 +153,10 @@ impl Mapper<'_> {
             else {
                 continue;
             };
+            debug!(
+                "loop match: {} -> {} window {} angle {} seed {} {} {} z {} {} {}",
+                anchor_serial, serial, window, angle, seed.x, seed.y, seed.theta, z.x, z.y, z.theta
+            );
             // A match is only believed when a second keyframe matched to the same submap
             // agrees with it through the front-end motion between the two.
             let candidate = LoopCandidate {
