@@ -11,8 +11,10 @@
 //!   `H dx = -g` stop between edges; sums run in edge order, so a split sum is the same sum;
 //! * the numeric factorization stops between columns (its pending-update lists live in the
 //!   workspace), and so do the forward and the backward substitution;
-//! * the odometry-chain gate, the structural refresh (with the minimum-degree ordering when
-//!   the structure changed), the variance of unit weight and the innovation tests run whole:
+//! * the minimum-degree ordering of a structural analysis stops between pivots (its
+//!   elimination graph lives in the workspace, see `ordering::Elimination`);
+//! * the odometry-chain gate, the active-edge flags of the structural refresh, the set-up and
+//!   the end of an analysis, the variance of unit weight and the innovation tests run whole:
 //!   a call that has already worked hands them to the next call instead of starting them.
 //!
 //! **Work units.** One unit is one `3x3` block multiply-subtract of the factorization (27
@@ -33,7 +35,7 @@
 use super::cholesky::{self, Factor};
 use super::iterate::apply_step;
 use super::linearize::{self, Stage, Warm};
-use super::{check_buffers, gate, ordering, refresh_structure};
+use super::{check_buffers, gate, ordering, refresh_flags};
 use super::{Method, SolveError, SolveFailure, SolveReport, SolverBuffers, SolverOptions};
 use crate::graph::{PoseEdge, PoseGraph, PoseNode, RobustKernel};
 use crate::storage::NodeId;
@@ -56,10 +58,13 @@ pub mod work {
     pub const SOLVE_BLOCKS_PER_UNIT: u64 = 3;
     /// Per edge of the odometry-chain gate and its support test (run whole).
     pub const EDGE_GATE: u64 = 12;
-    /// Per edge of the structural refresh, without the ordering (run whole).
+    /// Per edge of the structural refresh's active flags and fingerprint (run whole).
     pub const EDGE_REFRESH: u64 = 2;
-    /// Per node of a minimum-degree ordering (run whole, when the structure changed).
-    pub const NODE_ORDERING: u64 = 30;
+    /// Per node and edge of a structural analysis's set-up, and per node, edge and factor
+    /// block of its end (each run whole, when the structure changed).
+    pub const ANALYSIS_ITEM: u64 = 1;
+    /// Adjacency entries the minimum-degree elimination visits per unit.
+    pub const ORDERING_ENTRIES_PER_UNIT: u64 = 3;
 }
 
 /// What [`ChunkedSolve::advance`] did.
@@ -103,6 +108,17 @@ enum Phase {
     Admission(u32),
     FinalCost,
     Rejected,
+    /// A structural analysis, then the initial cost or the iteration's assembly.
+    Analyze(Resume),
+}
+
+/// What follows a structural analysis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Resume {
+    /// The refresh before the initial cost.
+    Start,
+    /// The refresh at the top of a Gauss-Newton iteration.
+    Iteration,
 }
 
 /// The state of one Gauss-Newton run (see `iterate::gauss_newton`).
@@ -141,6 +157,10 @@ pub struct ChunkedSolve {
     /// Running sums (robust cost, chi2) of the current evaluation or assembly.
     acc: (f64, f64),
     rejected: usize,
+    /// The fingerprint of the analysis in progress.
+    fingerprint: u64,
+    /// The minimum-degree elimination in progress (`None`: not set up yet).
+    elim: Option<ordering::Elimination>,
     /// Work units of the last call.
     spent: u64,
 }
@@ -195,6 +215,8 @@ impl ChunkedSolve {
             cursor: 0,
             acc: (0.0, 0.0),
             rejected: 0,
+            fingerprint: 0,
+            elim: None,
             spent: 0,
         })
     }
@@ -303,12 +325,26 @@ impl ChunkedSolve {
                     return None;
                 }
                 let (gauge, warm) = (self.gauge_first, self.gn.warm);
-                if let Err(e) =
-                    refresh_structure(nodes, edges, ws, gauge, n, warm, &mut self.report)
-                {
-                    return Some(self.fail(e));
+                match refresh_flags(nodes, edges, ws, gauge, n, warm) {
+                    (_, Some(fp)) => self.begin_analysis(fp, Resume::Start),
+                    (_, None) => self.begin_sum(Phase::InitialCost),
                 }
-                self.begin_sum(Phase::InitialCost);
+            }
+            Phase::Analyze(resume) => {
+                let analysis = self.analyze_chunk(nodes, edges, ws, whole, left, spent);
+                match analysis {
+                    Ok(false) => {}
+                    Ok(true) => match resume {
+                        Resume::Start => self.begin_sum(Phase::InitialCost),
+                        Resume::Iteration => self.assemble_begin(ws, spent),
+                    },
+                    Err(e) => {
+                        return match resume {
+                            Resume::Start => Some(self.fail(e)),
+                            Resume::Iteration => self.run_ended(nodes, edges, ws, Some(e)),
+                        };
+                    }
+                }
             }
             Phase::InitialCost => {
                 if self.cost_chunk(nodes, edges, ws, Warm::Off, left, spent) {
@@ -346,14 +382,12 @@ impl ChunkedSolve {
                     return None;
                 }
                 let (gauge, warm) = (self.gauge_first, self.gn.warm);
-                match refresh_structure(nodes, edges, ws, gauge, n, warm, &mut self.report) {
-                    Ok(changed) => self.gn.changed = changed,
-                    Err(e) => return self.run_ended(nodes, edges, ws, Some(e)),
+                let (changed, due) = refresh_flags(nodes, edges, ws, gauge, n, warm);
+                self.gn.changed = changed;
+                match due {
+                    Some(fp) => self.begin_analysis(fp, Resume::Iteration),
+                    None => self.assemble_begin(ws, spent),
                 }
-                let (vars, nnz) = (ws.key.vars, ws.key.nnz);
-                linearize::assemble_begin(vars, nnz, &mut linearize::System::of(ws, warm));
-                *spent = spent.saturating_add(((vars + nnz) / 8) as u64);
-                self.begin_sum(Phase::GnAssemble);
             }
             Phase::GnAssemble => {
                 let end = chunk_end(self.cursor, m, left, work::EDGE_ASSEMBLY);
