@@ -23,6 +23,7 @@
 
 use super::cholesky::{chol_inverse, mul_v, solve_in_place};
 use super::linearize::{edge_residual, info_block, quad};
+use super::resumable::work;
 use super::workspace::{Block, SolverBuffers};
 use crate::geom::{wrap_angle, Se2};
 use crate::graph::residual::relative_residual;
@@ -124,7 +125,37 @@ pub(crate) fn gate_loops(
     ws: &mut SolverBuffers<'_>,
     chi2: f64,
 ) -> usize {
-    let [odo, segment, ..] = &mut ws.scratch;
+    gate_index(n, edges, ws);
+    let mut chain = Chain::START;
+    gate_chain(&mut chain, n, edges, ws, u64::MAX);
+    gate_test(n, edges, ws, chi2, 0, u64::MAX).2
+}
+
+/// The odometry chain of [`gate_chain`] between calls: the segment, pose and world-frame
+/// covariance reached.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Chain {
+    /// Next node.
+    pub(crate) next: usize,
+    seg: u32,
+    pose: Se2,
+    cov: Block,
+}
+
+impl Chain {
+    /// Before the first node.
+    pub(crate) const START: Chain = Chain {
+        next: 0,
+        seg: 0,
+        pose: Se2::IDENTITY,
+        cov: [0.0; 9],
+    };
+}
+
+/// The first part of [`gate_loops`]: each node's odometry edge to its successor (`O(nodes +
+/// edges)`).
+pub(crate) fn gate_index(n: usize, edges: &[PoseEdge], ws: &mut SolverBuffers<'_>) {
+    let [odo, ..] = &mut ws.scratch;
     for k in 0..n {
         odo[k] = NONE;
     }
@@ -134,11 +165,28 @@ pub(crate) fn gate_loops(
             odo[a.min(b)] = idx as u32;
         }
     }
-    // Chain poses (in `saved`) and world-frame covariances (in `work`), per segment.
-    let mut seg = 0u32;
-    let mut pose = Se2::IDENTITY;
-    let mut cov: Block = [0.0; 9];
-    for k in 0..n {
+}
+
+/// Chains the odometry over the next nodes of `chain` (poses in `saved`, world-frame
+/// covariances in `work`, per segment) until at least `budget` work units were spent (at
+/// least one node); returns the units.
+pub(crate) fn gate_chain(
+    chain: &mut Chain,
+    n: usize,
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    budget: u64,
+) -> u64 {
+    let [odo, segment, ..] = &mut ws.scratch;
+    let Chain {
+        next,
+        mut seg,
+        mut pose,
+        mut cov,
+    } = *chain;
+    let mut spent = 0u64;
+    let mut k = next;
+    while k < n && spent < budget {
         ws.saved[k] = pose;
         ws.work[k] = cov;
         segment[k] = seg;
@@ -163,15 +211,44 @@ pub(crate) fn gate_loops(
                 cov = [0.0; 9];
             }
         }
+        spent += work::GATE_NODE;
+        k += 1;
     }
+    *chain = Chain {
+        next: k,
+        seg,
+        pose,
+        cov,
+    };
+    spent
+}
+
+/// The gate's test of edges `from..` until at least `budget` work units were spent (at least
+/// one edge): returns the next edge, the units and the max-mixture loops that passed.
+pub(crate) fn gate_test(
+    n: usize,
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    chi2: f64,
+    from: usize,
+    budget: u64,
+) -> (usize, u64, usize) {
     let mut passed = 0;
+    let mut spent = 0u64;
     let [_, segment, ..] = &ws.scratch;
-    for (e, flag) in edges.iter().zip(ws.edge_flags.iter_mut()) {
+    let mut k = from;
+    while k < edges.len() && spent < budget {
+        let (Some(e), Some(flag)) = (edges.get(k), ws.edge_flags.get_mut(k)) else {
+            break;
+        };
+        k += 1;
         let mm = matches!(e.robust, RobustKernel::MaxMixture { .. }) && e.kind == EdgeKind::Loop;
         if !mm {
             *flag = (*flag & 1) | GATE_PASSED;
+            spent += work::GATE_EDGE;
             continue;
         }
+        spent += work::GATE_LOOP;
         *flag &= 1;
         let (i, j) = (e.from.0 as usize, e.to.0 as usize);
         if i >= n || j >= n || segment[i] != segment[j] {
@@ -192,7 +269,7 @@ pub(crate) fn gate_loops(
             }
         }
     }
-    passed
+    (k, spent, passed)
 }
 
 /// Measurement of a relative edge from its earlier node to its later one: `(a, b, z, cov_z)`
@@ -277,20 +354,39 @@ pub(crate) fn support_loops(
     ws: &mut SolverBuffers<'_>,
     chi2: f64,
 ) -> usize {
-    ws.key.valid = false;
-    let gated = |e: &PoseEdge, f: u8| {
-        f & GATE_PASSED != 0
-            && e.kind == EdgeKind::Loop
-            && matches!(e.robust, RobustKernel::MaxMixture { .. })
-    };
-    if edges.len() >= LINK_NONE as usize {
-        return edges
-            .iter()
-            .zip(ws.edge_flags.iter())
-            .filter(|(e, &f)| gated(e, f))
-            .count();
+    if let Some(kept) = support_begin(n, edges, ws) {
+        return kept;
     }
-    let [_, segment, head, ..] = &mut ws.scratch;
+    support_pairs(n, edges, ws, chi2, 0, u64::MAX);
+    support_end(edges, ws)
+}
+
+/// A gated max-mixture loop.
+fn gated(e: &PoseEdge, f: u8) -> bool {
+    f & GATE_PASSED != 0
+        && e.kind == EdgeKind::Loop
+        && matches!(e.robust, RobustKernel::MaxMixture { .. })
+}
+
+/// The first part of [`support_loops`]: the gated loops in buckets by their lower end
+/// (`O(nodes + edges)`). `Some` (the gated loops) when there are too many edges to link, and
+/// the test is skipped.
+pub(crate) fn support_begin(
+    n: usize,
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+) -> Option<usize> {
+    ws.key.valid = false;
+    if edges.len() >= LINK_NONE as usize {
+        return Some(
+            edges
+                .iter()
+                .zip(ws.edge_flags.iter())
+                .filter(|(e, &f)| gated(e, f))
+                .count(),
+        );
+    }
+    let [_, _, head, ..] = &mut ws.scratch;
     for h in head.iter_mut().take(n) {
         *h = LINK_NONE;
     }
@@ -302,11 +398,30 @@ pub(crate) fn support_loops(
             head[a] = k as u32;
         }
     }
+    None
+}
+
+/// The pair tests of [`support_loops`] for the loops whose lower end is `from..` until at
+/// least `budget` work units were spent (at least one node): returns the next node and the
+/// units.
+pub(crate) fn support_pairs(
+    n: usize,
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    chi2: f64,
+    from: usize,
+    budget: u64,
+) -> (usize, u64) {
+    let [_, segment, head, ..] = &mut ws.scratch;
     let count_of = |slot: u32| slot >> LINK_BITS;
     let link_of = |slot: u32| slot & LINK_NONE;
-    for a1 in 0..n {
+    let mut spent = 0u64;
+    let mut a1 = from;
+    while a1 < n && spent < budget {
+        spent += work::GATE_EDGE;
         let mut x = head[a1];
         while x != LINK_NONE {
+            spent += work::GATE_LOOP;
             let ex = &edges[x as usize];
             let Some((_, b1, z1, c1)) = oriented(ex) else {
                 x = link_of(ws.edge_slot[x as usize]);
@@ -316,7 +431,6 @@ pub(crate) fn support_loops(
                 if segment[a2] != segment[a1] {
                     break;
                 }
-                // Within the same bucket, only the loops after `x`.
                 let mut y = if a2 == a1 {
                     link_of(ws.edge_slot[x as usize])
                 } else {
@@ -325,8 +439,10 @@ pub(crate) fn support_loops(
                 while y != LINK_NONE {
                     let next = link_of(ws.edge_slot[y as usize]);
                     let ey = &edges[y as usize];
+                    spent += work::GATE_LOOP;
                     if let Some((_, b2, z2, c2)) = oriented(ey) {
                         if b1.abs_diff(b2) <= SUPPORT_WINDOW && segment[b1] == segment[b2] {
+                            spent += work::GATE_PAIR;
                             let (ta, ca) = chain_between(ws.saved, ws.work, a2, a1);
                             let (tb, cb) = chain_between(ws.saved, ws.work, b1, b2);
                             let mut p = Se2::IDENTITY;
@@ -350,7 +466,15 @@ pub(crate) fn support_loops(
             }
             x = link_of(ws.edge_slot[x as usize]);
         }
+        a1 += 1;
     }
+    (a1, spent)
+}
+
+/// The end of [`support_loops`]: gated loops with too little support lose [`GATE_PASSED`];
+/// returns the gated loops that keep their place.
+pub(crate) fn support_end(edges: &[PoseEdge], ws: &mut SolverBuffers<'_>) -> usize {
+    let count_of = |slot: u32| slot >> LINK_BITS;
     let mut kept = 0;
     for (k, e) in edges.iter().enumerate() {
         let f = ws.edge_flags[k];

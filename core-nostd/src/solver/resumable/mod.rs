@@ -13,7 +13,9 @@
 //!   workspace), and so do the forward and the backward substitution;
 //! * the minimum-degree ordering of a structural analysis stops between pivots (its
 //!   elimination graph lives in the workspace, see `ordering::Elimination`);
-//! * the odometry-chain gate, the active-edge flags of the structural refresh, the set-up and
+//! * the odometry-chain gate stops between nodes of the chain and between edges of its test,
+//!   its support test between the loops' lower ends;
+//! * the set-up and end of the gate and of its support test, the active-edge flags of the structural refresh, the set-up and
 //!   the end of an analysis, the variance of unit weight and the innovation tests run whole:
 //!   a call that has already worked hands them to the next call instead of starting them.
 //!
@@ -56,8 +58,14 @@ pub mod work {
     pub const NODE_UPDATE: u64 = 1;
     /// Substitution blocks per unit (a block-vector product is a third of a block product).
     pub const SOLVE_BLOCKS_PER_UNIT: u64 = 3;
-    /// Per edge of the odometry-chain gate and its support test (run whole).
-    pub const EDGE_GATE: u64 = 12;
+    /// Per node of the odometry chain of the gate, and per node visited by its support test.
+    pub const GATE_NODE: u64 = 16;
+    /// Per edge of the gate's test that is not a max-mixture loop.
+    pub const GATE_EDGE: u64 = 1;
+    /// Per max-mixture loop tested by the gate, and per loop visited by the support test.
+    pub const GATE_LOOP: u64 = 24;
+    /// Per pair of loops whose consistency the support test computes.
+    pub const GATE_PAIR: u64 = 48;
     /// Per edge of the structural refresh's active flags and fingerprint (run whole).
     pub const EDGE_REFRESH: u64 = 2;
     /// Per node and edge of a structural analysis's set-up, and per node, edge and factor
@@ -93,7 +101,7 @@ enum Run {
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Phase {
     Trig,
-    Gate,
+    Gate(GateStep),
     Structure,
     InitialCost,
     GnCost,
@@ -110,6 +118,17 @@ enum Phase {
     Rejected,
     /// A structural analysis, then the initial cost or the iteration's assembly.
     Analyze(Resume),
+}
+
+/// Where the odometry-chain gate is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum GateStep {
+    Index,
+    Chain,
+    Test,
+    Link,
+    Pairs,
+    End,
 }
 
 /// What follows a structural analysis.
@@ -157,6 +176,8 @@ pub struct ChunkedSolve {
     /// Running sums (robust cost, chi2) of the current evaluation or assembly.
     acc: (f64, f64),
     rejected: usize,
+    /// The gate's odometry chain in progress.
+    chain: gate::Chain,
     /// The fingerprint of the analysis in progress.
     fingerprint: u64,
     /// The minimum-degree elimination in progress (`None`: not set up yet).
@@ -215,6 +236,7 @@ impl ChunkedSolve {
             cursor: 0,
             acc: (0.0, 0.0),
             rejected: 0,
+            chain: gate::Chain::START,
             fingerprint: 0,
             elim: None,
             spent: 0,
@@ -305,20 +327,16 @@ impl ChunkedSolve {
                 self.cursor = end;
                 if end == m {
                     self.phase = if self.gated {
-                        Phase::Gate
+                        Phase::Gate(GateStep::Index)
                     } else {
                         Phase::Structure
                     };
                 }
             }
-            Phase::Gate => {
-                if !whole(m as u64 * work::EDGE_GATE, spent) {
-                    return None;
+            Phase::Gate(step) => {
+                if let Some(next) = self.gate_step(step, nodes, edges, ws, whole, left, spent) {
+                    self.phase = next;
                 }
-                let chi2 = self.options.gate_chi2;
-                gate::gate_loops(n, edges, ws, chi2);
-                self.report.gated_loops = gate::support_loops(n, edges, ws, chi2);
-                self.phase = Phase::Structure;
             }
             Phase::Structure => {
                 if !whole(self.refresh_cost(n, m), spent) {

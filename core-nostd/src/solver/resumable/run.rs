@@ -2,7 +2,7 @@
 //! stopping rule of `iterate::gauss_newton`), the sequence of runs of [`super::super::solve`]
 //! (warm start, free run, admission rounds), and the small helpers of the chunked phases.
 
-use super::{work, ChunkedSolve, Gn, Phase, Progress, Resume, Run};
+use super::{work, ChunkedSolve, GateStep, Gn, Phase, Progress, Resume, Run};
 use crate::geom::Se2;
 use crate::graph::{PoseEdge, PoseNode};
 use crate::solver::gate;
@@ -179,6 +179,75 @@ impl ChunkedSolve {
                 analysis_done(n, m, self.fingerprint, ws, &mut self.report);
                 self.elim = None;
                 Ok(true)
+            }
+        }
+    }
+
+    /// Runs the next part of the odometry-chain gate and its support test (module `gate`);
+    /// returns the phase that follows when this part ended.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn gate_step(
+        &mut self,
+        step: GateStep,
+        nodes: &[PoseNode],
+        edges: &[PoseEdge],
+        ws: &mut SolverBuffers<'_>,
+        whole: impl Fn(u64, &mut u64) -> bool,
+        left: u64,
+        spent: &mut u64,
+    ) -> Option<Phase> {
+        let (n, m) = (nodes.len(), edges.len());
+        let chi2 = self.options.gate_chi2;
+        let setup = (n + m) as u64 * work::ANALYSIS_ITEM;
+        match step {
+            GateStep::Index => {
+                if !whole(setup, spent) {
+                    return None;
+                }
+                gate::gate_index(n, edges, ws);
+                self.chain = gate::Chain::START;
+                Some(Phase::Gate(GateStep::Chain))
+            }
+            GateStep::Chain => {
+                let used = gate::gate_chain(&mut self.chain, n, edges, ws, left);
+                *spent = spent.saturating_add(used);
+                (self.chain.next >= n).then(|| {
+                    self.cursor = 0;
+                    Phase::Gate(GateStep::Test)
+                })
+            }
+            GateStep::Test => {
+                let (next, used, _) = gate::gate_test(n, edges, ws, chi2, self.cursor, left);
+                *spent = spent.saturating_add(used);
+                self.cursor = next;
+                (next >= m).then_some(Phase::Gate(GateStep::Link))
+            }
+            GateStep::Link => {
+                if !whole(setup, spent) {
+                    return None;
+                }
+                self.cursor = 0;
+                match gate::support_begin(n, edges, ws) {
+                    Some(kept) => {
+                        self.report.gated_loops = kept;
+                        Some(Phase::Structure)
+                    }
+                    None => Some(Phase::Gate(GateStep::Pairs)),
+                }
+            }
+            GateStep::Pairs => {
+                let (next, used) = gate::support_pairs(n, edges, ws, chi2, self.cursor, left);
+                *spent = spent.saturating_add(used);
+                self.cursor = next;
+                (next >= n).then_some(Phase::Gate(GateStep::End))
+            }
+            GateStep::End => {
+                if !whole(m as u64 * work::ANALYSIS_ITEM, spent) {
+                    return None;
+                }
+                self.report.gated_loops = gate::support_end(edges, ws);
+                self.cursor = 0;
+                Some(Phase::Structure)
             }
         }
     }
