@@ -15,18 +15,17 @@
 //! residual until that settles; then the free max-mixture solve, where every edge picks its most
 //! likely component, except that a loop the warm start did not use is held on its null
 //! component until it is consistent with the map ([`unit_variance`],
-//! [`admit_by_innovation`]).
+//! [`super::admission::admit_by_innovation`]).
 //!
 //! The chain's covariance in the world frame is kept per node: `S_b = J_a S_a J_a^T +
 //! J_z S_z J_z^T`, so the relative covariance of nodes `a < b` is recovered in O(1) as
 //! `R_a^T (S_b - J S_a J^T) R_a` with `J` the Jacobian of `P_a (+) T` with respect to `P_a`.
 
-use super::cholesky::{chol_inverse, mul_v, solve_in_place};
+use super::cholesky::{chol_inverse, mul_v};
 use super::linearize::{edge_residual, info_block, quad};
 use super::resumable::work;
 use super::workspace::{Block, SolverBuffers};
 use crate::geom::{wrap_angle, Se2};
-use crate::graph::residual::relative_residual;
 use crate::graph::{EdgeKind, PoseEdge, PoseNode, RobustKernel};
 
 const NONE: u32 = u32::MAX;
@@ -59,7 +58,7 @@ fn mul(a: &Block, b: &Block) -> Block {
     o
 }
 
-fn transpose(a: &Block) -> Block {
+pub(super) fn transpose(a: &Block) -> Block {
     [a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8]]
 }
 
@@ -68,7 +67,7 @@ fn sandwich(j: &Block, m: &Block) -> Block {
     mul(&mul(j, m), &transpose(j))
 }
 
-fn add(a: &Block, b: &Block) -> Block {
+pub(super) fn add(a: &Block, b: &Block) -> Block {
     let mut o = *a;
     for (x, y) in o.iter_mut().zip(b) {
         *x += y;
@@ -77,7 +76,7 @@ fn add(a: &Block, b: &Block) -> Block {
 }
 
 /// Inverse of a symmetric positive definite block, from its Cholesky factor.
-fn spd_inverse(m: &Block) -> Option<Block> {
+pub(super) fn spd_inverse(m: &Block) -> Option<Block> {
     let li = chol_inverse(m)?;
     Some(mul(&transpose(&li), &li))
 }
@@ -518,107 +517,4 @@ pub(crate) fn unit_variance(nodes: &[PoseNode], edges: &[PoseEdge], ws: &SolverB
     } else {
         1.0
     }
-}
-
-/// The innovation test of the max-mixture loops that the admission gate
-/// ([`super::linearize::Warm::Admit`]) holds back: loops without [`GATE_PASSED`] whose chi2
-/// at the current estimate is above `chi2` although their max-mixture would pick a component
-/// of useful weight. Such a loop is left out of the system, so the factor in the workspace
-/// (from the last iteration) gives the covariance of its predicted residual, `J H^-1 J^T`
-/// (three solves); the loop is admitted (marked [`GATE_PASSED`], free to follow its
-/// max-mixture from then on) when `e^T (J H^-1 J^T + Omega^-1)^-1 e <= chi2`. A loop that
-/// closes a stretch which nothing else constrains passes; a false loop between well-known
-/// places does not. Returns the number admitted.
-pub(crate) fn admit_by_innovation(
-    nodes: &[PoseNode],
-    edges: &[PoseEdge],
-    ws: &mut SolverBuffers<'_>,
-    chi2: f64,
-) -> usize {
-    admit_range(nodes, edges, ws, chi2, 0, usize::MAX).1
-}
-
-/// [`admit_by_innovation`] over the edges from `from` on, stopping before the loop that would
-/// be the `max_tests + 1`-th tested (each test is three solves with the factor); returns the
-/// next edge, the loops admitted and the loops tested. The tests are independent of each other (a loop's
-/// admission changes only its own flag, not the factor), so split runs admit the same loops.
-pub(crate) fn admit_range(
-    nodes: &[PoseNode],
-    edges: &[PoseEdge],
-    ws: &mut SolverBuffers<'_>,
-    chi2: f64,
-    from: usize,
-    max_tests: usize,
-) -> (usize, usize, usize) {
-    let vars = ws.key.vars;
-    let mut admitted = 0;
-    let mut tested = 0;
-    for (k, e) in edges.iter().enumerate().skip(from) {
-        let f = ws.edge_flags[k];
-        if f & GATE_PASSED != 0
-            || e.kind != EdgeKind::Loop
-            || !matches!(e.robust, RobustKernel::MaxMixture { .. })
-        {
-            continue;
-        }
-        let (i, j) = (e.from.0 as usize, e.to.0 as usize);
-        let (Some(ni), Some(nj)) = (nodes.get(i), nodes.get(j)) else {
-            continue;
-        };
-        let (ci, si) = (libm::cos(ni.pose.theta), libm::sin(ni.pose.theta));
-        let [cz, sz] = ws.edge_trig[k];
-        let (r, [ca, sa, gx, gy]) =
-            relative_residual(&ni.pose, ci, si, &nj.pose, &e.measurement, cz, sz);
-        let info = info_block(e);
-        let c = quad(&info, &r);
-        if c <= chi2 || e.robust.weigh(c).0 < super::INACTIVE_SCALE {
-            continue;
-        }
-        let Some(cov_z) = spd_inverse(&info) else {
-            continue;
-        };
-        if tested >= max_tests {
-            return (k, admitted, tested);
-        }
-        tested += 1;
-        let jj: Block = [ca, sa, 0.0, -sa, ca, 0.0, 0.0, 0.0, 1.0];
-        let ji: Block = [-ca, -sa, gx, sa, -ca, gy, 0.0, 0.0, -1.0];
-        let (pi, pj) = (ws.node_var[i], ws.node_var[j]);
-        let mut pred: Block = [0.0; 9];
-        for col in 0..3 {
-            for v in ws.rhs.iter_mut().take(vars) {
-                *v = [0.0; 3];
-            }
-            // Column `col` of J^T, by variable position.
-            for (p, jac) in [(pi, &ji), (pj, &jj)] {
-                if let Some(v) = ws.rhs.get_mut(p as usize).filter(|_| (p as usize) < vars) {
-                    for (d, x) in v.iter_mut().enumerate() {
-                        *x += jac[3 * col + d];
-                    }
-                }
-            }
-            solve_in_place(vars, ws.col_end, ws.rows, ws.values, ws.diag, ws.rhs);
-            for (p, jac) in [(pi, &ji), (pj, &jj)] {
-                if let Some(x) = ws.rhs.get(p as usize).filter(|_| (p as usize) < vars) {
-                    let y = mul_v(jac, x);
-                    for row in 0..3 {
-                        pred[3 * row + col] += y[row];
-                    }
-                }
-            }
-        }
-        let mut total = add(&pred, &transpose(&pred));
-        for (v, cz) in total.iter_mut().zip(cov_z) {
-            *v = 0.5 * *v + cz;
-        }
-        let m = chol_inverse(&total).map(|li| {
-            let y = mul_v(&li, &r);
-            y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
-        });
-        if m.is_some_and(|m| m <= chi2) {
-            ws.edge_flags[k] = f | GATE_PASSED;
-            admitted += 1;
-        }
-    }
-    (edges.len(), admitted, tested)
 }

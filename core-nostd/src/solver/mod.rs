@@ -43,6 +43,7 @@
 //! same Gauss-Newton solve in bounded chunks of work, for the back-end's steps), `ordering`,
 //! `cholesky`, `linearize`, `gate`, `marginals` and `workspace`.
 
+mod admission;
 mod cholesky;
 mod gate;
 mod iterate;
@@ -226,7 +227,7 @@ pub fn solve(
                 let Warm::Admit(limit) = free else {
                     break;
                 };
-                if gate::admit_by_innovation(nodes, edges, ws, limit) == 0 {
+                if admission::admit_by_innovation(nodes, edges, ws, limit) == 0 {
                     break;
                 }
                 r = gauss_newton(

@@ -15,9 +15,11 @@
 //!   elimination graph lives in the workspace, see `ordering::Elimination`);
 //! * the odometry-chain gate stops between nodes of the chain and between edges of its test,
 //!   its support test between the loops' lower ends;
-//! * the set-up and end of the gate and of its support test, the active-edge flags of the structural refresh, the set-up and
-//!   the end of an analysis, the variance of unit weight and the innovation tests run whole:
-//!   a call that has already worked hands them to the next call instead of starting them.
+//! * the innovation tests stop between loops and inside a test's forward and backward solves;
+//! * the set-up and end of the gate and of its support test, the active-edge flags of the
+//!   structural refresh, the set-up and the end of an analysis and the variance of unit weight
+//!   run whole: a call that has already worked hands them to the next call instead of
+//!   starting them.
 //!
 //! **Work units.** One unit is one `3x3` block multiply-subtract of the factorization (27
 //! multiply-adds). The other items are charged by their measured cost in those units on the
@@ -37,7 +39,7 @@
 use super::cholesky::{self, Factor};
 use super::iterate::apply_step;
 use super::linearize::{self, Stage, Warm};
-use super::{check_buffers, gate, ordering, refresh_flags};
+use super::{admission, check_buffers, gate, ordering, refresh_flags};
 use super::{Method, SolveError, SolveFailure, SolveReport, SolverBuffers, SolverOptions};
 use crate::graph::{PoseEdge, PoseGraph, PoseNode, RobustKernel};
 use crate::storage::NodeId;
@@ -46,7 +48,7 @@ mod run;
 use run::{carry, chunk_end};
 
 /// The cost of each item in work units (one `3x3` block multiply-subtract of the
-/// factorization), measured on the Cortex-A9 (about 60 instructions per unit).
+/// factorization), measured on the Cortex-A9 (85 to 110 instructions per unit).
 pub mod work {
     /// Cosine and sine of one edge's measured angle.
     pub const EDGE_TRIG: u64 = 4;
@@ -176,6 +178,8 @@ pub struct ChunkedSolve {
     /// Running sums (robust cost, chi2) of the current evaluation or assembly.
     acc: (f64, f64),
     rejected: usize,
+    /// The innovation tests in progress.
+    admit: admission::Admit,
     /// The gate's odometry chain in progress.
     chain: gate::Chain,
     /// The fingerprint of the analysis in progress.
@@ -236,6 +240,7 @@ impl ChunkedSolve {
             cursor: 0,
             acc: (0.0, 0.0),
             rejected: 0,
+            admit: admission::Admit::START,
             chain: gate::Chain::START,
             fingerprint: 0,
             elim: None,
@@ -512,15 +517,11 @@ impl ChunkedSolve {
                     self.begin_sum(Phase::FinalCost);
                     return None;
                 };
-                // One test is three solves with the factor, each forward and back.
-                let per_test = 6 * (ws.key.nnz + ws.key.vars) as u64 / work::SOLVE_BLOCKS_PER_UNIT;
-                let tests = usize::try_from(left / per_test.max(1)).unwrap_or(usize::MAX);
-                let (next, admitted, tested) =
-                    gate::admit_range(nodes, edges, ws, limit, self.cursor, tests.max(1));
-                *spent = spent.saturating_add(per_test.saturating_mul(tested as u64).max(1));
-                self.cursor = next;
+                let (used, admitted) =
+                    admission::admit_chunk(nodes, edges, ws, limit, &mut self.admit, left);
+                *spent = spent.saturating_add(used.max(1));
                 self.rejected += admitted;
-                if next < m {
+                if self.admit.next < m {
                     return None;
                 }
                 if self.rejected == 0 {

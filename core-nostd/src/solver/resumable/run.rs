@@ -8,6 +8,7 @@ use crate::graph::{PoseEdge, PoseNode};
 use crate::solver::gate;
 use crate::solver::iterate::{apply_step, MAX_HALVINGS, SETTLE_ITERATIONS};
 use crate::solver::linearize::{self, Warm};
+use crate::solver::admission;
 use crate::solver::{analysis_done, ordering, SolveError, SolverBuffers, ADMISSION_ROUNDS};
 
 impl ChunkedSolve {
@@ -97,7 +98,7 @@ impl ChunkedSolve {
                 if self.gated && usable && round < ADMISSION_ROUNDS {
                     // `rejected` counts the loops this round admits until the final count.
                     self.rejected = 0;
-                    self.cursor = 0;
+                    self.admit = admission::Admit::START;
                     self.phase = Phase::Admission(round);
                 } else {
                     self.begin_sum(Phase::FinalCost);
