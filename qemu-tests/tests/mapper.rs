@@ -188,3 +188,47 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         last.theta
     );
 }
+
+/// Most instructions of one back-end step on the whole log (issue 14: bounded by work, not by
+/// iterations).
+const BACKEND_STEP_MAX: u64 = 5_000_000;
+
+/// The whole of intel.clf (13,631 scans, 2,720 frame nodes at the end; about 2 minutes under
+/// QEMU): no back-end step, of the optimizer or of the far loop search, exceeds
+/// [`BACKEND_STEP_MAX`] instructions. The first 1,000 scans above never exercise this: their
+/// graph has 164 nodes and every solve ends within one step's budget. Here the solves span
+/// many steps: the gate's odometry chain and support test, the minimum-degree ordering of up
+/// to 2,720 nodes, the factorization, the substitutions and the innovation tests each stop
+/// where the budget runs out, and the far search spreads its branch and bound, its pyramid
+/// builds and its refinements over the turns the optimizer leaves idle.
+#[test]
+fn intel_whole_log_backend_chunks_stay_bounded() {
+    let Some(clf) = cloi_host::dataset::shared_file("carmen/intel.clf") else {
+        return;
+    };
+    let dir = workspace_root().join("target").join("qemu-mapper-whole");
+    std::fs::create_dir_all(&dir).unwrap();
+    let dir = dir.canonicalize().unwrap();
+    let log = dir.join("intel.cloilog");
+    let report = cloi_host::io::cloilog::carmen_to_cloilog(&clf, &log, false, None, None).unwrap();
+    assert!(report.scans > 13_000, "{} scans", report.scans);
+
+    build_firmware().expect("firmware builds");
+    let elf = firmware_elf("cloi-mapper");
+    let fw = run_mapper(&elf, &log, &dir.join("poses.txt")).expect("mapper firmware run");
+    std::fs::write(dir.join("firmware.log"), &fw.log).unwrap();
+    assert!(fw.counters["keyframes"] > 2_000, "{}", fw.log);
+    for name in ["backend_working", "backend_optimizer"] {
+        let p = fw.sections[name];
+        println!(
+            "{name}: n {} min {} median {} p99 {} max {}",
+            p.n, p.min, p.median, p.p99, p.max
+        );
+        assert!(p.n > 1_000, "{name}: {} steps", p.n);
+        assert!(
+            p.max <= BACKEND_STEP_MAX,
+            "{name}: max {} > {BACKEND_STEP_MAX}",
+            p.max
+        );
+    }
+}

@@ -75,7 +75,7 @@ pub(crate) fn admit_chunk(
     budget: u64,
 ) -> (u64, usize) {
     let vars = ws.key.vars;
-    let per = work::SOLVE_BLOCKS_PER_UNIT;
+    let per = work::ADMISSION_BLOCKS_PER_UNIT;
     let mut admitted = 0;
     let mut spent = 0u64;
     while spent < budget {
@@ -96,7 +96,7 @@ pub(crate) fn admit_chunk(
             s.next += 1;
             continue;
         };
-        spent += work::EDGE_COST;
+        spent += work::ADMISSION_EDGE;
         let (ci, si) = (libm::cos(ni.pose.theta), libm::sin(ni.pose.theta));
         let [cz, sz] = ws.edge_trig[k];
         let (r, [ca, sa, gx, gy]) =
@@ -132,8 +132,9 @@ pub(crate) fn admit_chunk(
                 s.stage = Stage::Forward(0);
             }
             Stage::Forward(from) => {
-                let (next, touched) =
-                    forward(vars, ws.col_end, ws.rows, ws.values, ws.diag, ws.rhs, from, left);
+                let (next, touched) = forward(
+                    vars, ws.col_end, ws.rows, ws.values, ws.diag, ws.rhs, from, left,
+                );
                 spent += touched.div_ceil(per);
                 s.stage = if next >= vars {
                     Stage::Backward(vars)
@@ -152,8 +153,8 @@ pub(crate) fn admit_chunk(
                 for (p, jac) in [(pi, &ji), (pj, &jj)] {
                     if let Some(x) = ws.rhs.get(p as usize).filter(|_| (p as usize) < vars) {
                         let y = mul_v(jac, x);
-                        for row in 0..3 {
-                            s.pred[3 * row + s.col] += y[row];
+                        for (row, v) in y.iter().enumerate() {
+                            s.pred[3 * row + s.col] += v;
                         }
                     }
                 }

@@ -396,8 +396,7 @@ pub(super) fn refresh_flags(
     }
     let fp = ordering::fingerprint(nodes, edges, ws.edge_flags, gauge_first);
     let key = *ws.key;
-    if key.valid && key.nodes == nodes.len() && key.edges == edges.len() && key.fingerprint == fp
-    {
+    if key.valid && key.nodes == nodes.len() && key.edges == edges.len() && key.fingerprint == fp {
         return (changed, None);
     }
     ws.key.valid = false;

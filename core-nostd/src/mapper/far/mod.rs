@@ -59,9 +59,9 @@ use accept::SUPPORT_EDGES;
 
 /// Submaps searched for one keyframe before the next keyframe takes over.
 pub const PER_KEYFRAME: usize = 8;
-/// Candidate evaluations of the far search per back-end step (about 1,300 Cortex-A9
-/// instructions each with the scan's 160 points).
-pub const STEP_BUDGET: u32 = 2500;
+/// Candidate evaluations of the far search per back-end step (1,300 to 3,700 Cortex-A9
+/// instructions each with the scan's 160 points, as measured on intel.clf).
+pub const STEP_BUDGET: u32 = 1100;
 /// Pyramid level the far search scores at (4 cells per step at level 2).
 const BASE_LEVEL: u8 = 2;
 /// A far match is ambiguous, and not taken, when a pose distinct from it (1 m or 0.3 rad away)
@@ -343,13 +343,15 @@ impl Mapper<'_> {
             return true;
         };
         // A pyramid built in this turn is searched in the next, unless it had to be built
-        // again (the windowed loop search shares its storage).
+        // again (the windowed loop search shares its storage): then a quarter turn's search
+        // follows the build.
         if build && !self.st.far.built {
             self.st.far.built = true;
             return true;
         }
         self.st.far.built = false;
-        let step = self.st.far.search.step(&submap, &pyramid, STEP_BUDGET);
+        let budget = if build { STEP_BUDGET / 4 } else { STEP_BUDGET };
+        let step = self.st.far.search.step(&submap, &pyramid, budget);
         let found = match step {
             Ok(FarStep::Working) => return true,
             Ok(FarStep::Done(found)) => found,

@@ -60,6 +60,12 @@ pub mod work {
     pub const NODE_UPDATE: u64 = 1;
     /// Substitution blocks per unit (a block-vector product is a third of a block product).
     pub const SOLVE_BLOCKS_PER_UNIT: u64 = 3;
+    /// Per max-mixture loop the innovation tests look at (its residual), and per resumption
+    /// of its test.
+    pub const ADMISSION_EDGE: u64 = 12;
+    /// Substitution blocks per unit in the innovation tests (measured: their solves cost half
+    /// as much again per block as the iteration's).
+    pub const ADMISSION_BLOCKS_PER_UNIT: u64 = 2;
     /// Per node of the odometry chain of the gate, and per node visited by its support test.
     pub const GATE_NODE: u64 = 16;
     /// Per edge of the gate's test that is not a max-mixture loop.

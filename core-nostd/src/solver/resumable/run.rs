@@ -5,10 +5,10 @@
 use super::{work, ChunkedSolve, GateStep, Gn, Phase, Progress, Resume, Run};
 use crate::geom::Se2;
 use crate::graph::{PoseEdge, PoseNode};
+use crate::solver::admission;
 use crate::solver::gate;
 use crate::solver::iterate::{apply_step, MAX_HALVINGS, SETTLE_ITERATIONS};
 use crate::solver::linearize::{self, Warm};
-use crate::solver::admission;
 use crate::solver::{analysis_done, ordering, SolveError, SolverBuffers, ADMISSION_ROUNDS};
 
 impl ChunkedSolve {
