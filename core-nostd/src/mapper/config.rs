@@ -168,7 +168,7 @@ pub struct BackendConfig {
 impl BackendConfig {
     /// The default work budget of one back-end step: about 4 M Cortex-A9 instructions, so a
     /// step stays within 5 M with the parts of a solve that run whole.
-    pub const WORK_BUDGET: u64 = 35_000;
+    pub const WORK_BUDGET: u64 = 32_000;
 }
 
 impl Default for BackendConfig {
