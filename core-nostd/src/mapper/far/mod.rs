@@ -59,7 +59,7 @@ use accept::SUPPORT_EDGES;
 
 /// Submaps searched for one keyframe before the next keyframe takes over.
 pub const PER_KEYFRAME: usize = 8;
-/// Candidate evaluations of the far search per back-end step (1,300 to 3,700 Cortex-A9
+/// Candidate evaluations of the far search per back-end step (1,300 to 5,700 Cortex-A9
 /// instructions each with the scan's 160 points, as measured on intel.clf).
 pub const STEP_BUDGET: u32 = 1100;
 /// Pyramid level the far search scores at (4 cells per step at level 2).
