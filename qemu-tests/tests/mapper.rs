@@ -190,14 +190,14 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
 }
 
 /// Most instructions of one back-end step that advances the optimizer, on the whole log
-/// (issue 14: bounded by work, not by iterations; max 4,775,650 measured, median 2,678,750,
+/// (issue 14: bounded by work, not by iterations; max 4,775,640 measured, median 2,678,730,
 /// 3,022 steps).
 const OPTIMIZER_STEP_MAX: u64 = 5_000_000;
-/// Most instructions of any back-end step on the whole log (max 6,298,570 measured, median
-/// 2,984,040, 8,386 steps). Above the optimizer's: the far search's refinement of a found
+/// Most instructions of any back-end step on the whole log (max 6,290,810 measured, median
+/// 2,981,260, 8,386 steps). Above the optimizer's: the far search's refinement of a found
 /// match (windowed correlative match and ICP against the submap, `mapper/far/accept.rs`)
-/// still runs whole (up to 5,990,180), and a branch-and-bound turn of 1,100 evaluations
-/// reached 6,298,570 once (evaluations cost 1,300 to 5,700 instructions).
+/// still runs whole (up to 6.0 M), and a branch-and-bound turn of 1,100 evaluations reached
+/// 6.3 M once (evaluations cost 1,300 to 5,700 instructions).
 const BACKEND_STEP_MAX: u64 = 7_500_000;
 
 /// The whole of intel.clf (13,631 scans, 2,720 frame nodes at the end; 2 to 4 minutes under
