@@ -8,6 +8,7 @@ extern crate std;
 use std::vec::Vec;
 
 use super::brief::{describe, Descriptor};
+use super::camera::{CameraExtrinsic, CameraModel, Intrinsics, Kb4};
 use super::fast::{detect, FastConfig, Keypoint};
 use super::image::{smooth_into, GrayImage};
 
@@ -24,6 +25,22 @@ pub fn features_of(data: &[u8], w: usize, h: usize) -> Vec<(Keypoint, Descriptor
         .iter()
         .filter_map(|k| Some((*k, describe(&smooth, k)?)))
         .collect()
+}
+
+/// The cleaner's camera as the geometry tests use it: a quarter-VGA KB4 fisheye (focal length
+/// 120 px), 10 cm ahead of the turning centre and 9 cm up, tilted 60 degrees to the ceiling.
+pub fn cleaner_camera() -> (CameraModel, CameraExtrinsic) {
+    let k = Intrinsics {
+        fx: 120.0,
+        fy: 120.0,
+        cx: 160.0,
+        cy: 120.0,
+    };
+    let model = CameraModel::Kb4(
+        Kb4::new_checked(k, [0.02, -0.01, 0.003, -0.0005], 1.6).expect("valid lens"),
+    );
+    let mount = CameraExtrinsic::mounted([0.1, 0.0, 0.09], 0.0, 60f64.to_radians());
+    (model, mount)
 }
 
 /// A deterministic generator (SplitMix64) for the tests.

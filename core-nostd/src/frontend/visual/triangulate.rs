@@ -161,22 +161,7 @@ pub fn triangulate(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frontend::visual::camera::{Intrinsics, Kb4};
-
-    fn cleaner_camera() -> (CameraModel, CameraExtrinsic) {
-        let k = Intrinsics {
-            fx: 120.0,
-            fy: 120.0,
-            cx: 160.0,
-            cy: 120.0,
-        };
-        let model = CameraModel::Kb4(
-            Kb4::new_checked(k, [0.02, -0.01, 0.003, -0.0005], 1.6).expect("valid lens"),
-        );
-        // The cleaner's camera: 10 cm forward, 9 cm up, tilted 60 degrees toward the ceiling.
-        let mount = CameraExtrinsic::mounted([0.1, 0.0, 0.09], 0.0, 60f64.to_radians());
-        (model, mount)
-    }
+    use crate::frontend::visual::synth::cleaner_camera;
 
     fn pixel(model: &CameraModel, pose: &CameraPose, p: &Vector3<f64>) -> Observation {
         Observation {

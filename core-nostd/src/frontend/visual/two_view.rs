@@ -207,21 +207,7 @@ mod tests {
     extern crate std;
 
     use super::*;
-    use crate::frontend::visual::camera::{Intrinsics, Kb4};
-
-    fn camera() -> (CameraModel, CameraExtrinsic) {
-        let k = Intrinsics {
-            fx: 120.0,
-            fy: 120.0,
-            cx: 160.0,
-            cy: 120.0,
-        };
-        let model = CameraModel::Kb4(
-            Kb4::new_checked(k, [0.02, -0.01, 0.003, -0.0005], 1.6).expect("valid lens"),
-        );
-        let mount = CameraExtrinsic::mounted([0.1, 0.0, 0.09], 0.0, 60f64.to_radians());
-        (model, mount)
-    }
+    use crate::frontend::visual::synth::cleaner_camera;
 
     /// Bearings of ceiling points 2.4 m up seen from the origin and from `truth`.
     fn sightings(mount: &CameraExtrinsic, truth: &Se2) -> std::vec::Vec<BearingPair> {
@@ -246,7 +232,7 @@ mod tests {
 
     #[test]
     fn the_heading_and_direction_come_back_from_a_wrong_odometry() {
-        let (_, mount) = camera();
+        let (_, mount) = cleaner_camera();
         let truth = Se2::new(0.33, 0.05, 0.12);
         let mut matches = sightings(&mount, &truth);
         assert!(matches.len() >= 20);
@@ -286,7 +272,7 @@ mod tests {
 
     #[test]
     fn standing_still_or_too_few_matches_fix_nothing() {
-        let (_, mount) = camera();
+        let (_, mount) = cleaner_camera();
         let matches = sightings(&mount, &Se2::new(0.3, 0.0, 0.0));
         let mut scratch = [0.0; 64];
         let cfg = TwoViewConfig::default();
