@@ -160,7 +160,7 @@ pub struct BackendConfig {
     /// Chi2 threshold of the odometry-chain gate that warm-starts max-mixture loops (see
     /// `solver::gate`); 0 disables it.
     pub gate_chi2: f64,
-    /// Most work units of one back-end step (`solver::work`, about 100 Cortex-A9 instructions
+    /// Most work units of one back-end step (`solver::work`, about 60 Cortex-A9 instructions
     /// each): a solve spans as many steps as it needs. 0: no limit (each step runs whole
     /// solves of the step's iterations).
     pub work_budget: u64,
@@ -169,7 +169,7 @@ pub struct BackendConfig {
 impl BackendConfig {
     /// The default work budget of one back-end step: about 4 M Cortex-A9 instructions, so a
     /// step stays within 5 M with the parts of a solve that run whole.
-    pub const WORK_BUDGET: u64 = 32_000;
+    pub const WORK_BUDGET: u64 = 60_000;
 }
 
 impl Default for BackendConfig {
