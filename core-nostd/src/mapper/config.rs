@@ -1,6 +1,8 @@
 //! Parameters of the mapper, with defaults for the benchmark logs (a 180-degree scanner on a
 //! wheeled base) and 10 m submaps.
 
+use crate::backend::schedule::ScheduleParams;
+use crate::frontend::lidar::{LidarParams, MotionNoise};
 use crate::frontend::odometry::OdometryConfig;
 use crate::frontend::visual::TrackConfig;
 use crate::frontend::{GridParams, IcpConfig, KeyframeConfig, PreprocessConfig};
@@ -341,6 +343,35 @@ impl MapperConfig {
                 ..base.backend
             },
             ..base
+        }
+    }
+}
+
+impl MotionNoise for FrontendNoise {
+    fn covariance(&self, distance: f64, rotation: f64) -> Cov3 {
+        FrontendNoise::covariance(self, distance, rotation)
+    }
+}
+
+impl MapperConfig {
+    /// The front-end's part of the configuration.
+    pub(crate) fn lidar(&self) -> LidarParams<'_> {
+        LidarParams {
+            icp: &self.icp,
+            min_fitness: self.min_fitness,
+            turn_reseed: self.turn_reseed,
+            turn_reseed_rms: self.turn_reseed_rms,
+            stall_motion: self.stall_motion,
+        }
+    }
+
+    /// The back-end schedule's part of the configuration.
+    pub(crate) fn schedule(&self) -> ScheduleParams {
+        ScheduleParams {
+            every_keyframes: self.backend.every_keyframes,
+            max_iterations: self.backend.max_iterations,
+            gate_chi2: self.backend.gate_chi2,
+            work_budget: self.backend.work_budget,
         }
     }
 }

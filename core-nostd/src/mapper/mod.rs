@@ -47,12 +47,12 @@ pub mod sync;
 mod types;
 
 use crate::backend::prune::PruneScratch;
-use crate::backend::schedule::{BackendSchedule, ScheduleParams};
-use crate::frontend::lidar::{FrontendStep, LidarFrontend, LidarParams, MotionNoise};
+use crate::backend::schedule::BackendSchedule;
+use crate::frontend::lidar::{FrontendStep, LidarFrontend};
 use crate::frontend::odometry::{OdomError, OdomIncrement, OdometryFusion};
 use crate::frontend::scan::{BeamGeometry, ScanPoint, ScanPoints};
 use crate::frontend::{preprocess, PointMap, PreprocessConfig};
-use crate::geom::{Cov3, Se2};
+use crate::geom::Se2;
 use crate::gpe::{choose_anchor, AnchorCandidate, GpeFrame, GpeTracker, NodeTie};
 use crate::graph::PoseGraph;
 use crate::solver::SolverBuffers;
@@ -109,35 +109,6 @@ pub const PYRAMID_LEVELS: usize = 5;
 pub const ODOMETRY_HISTORY: usize = 256;
 /// `NodeMeta::submap` value of "no submap".
 pub const NO_SUBMAP: u16 = u16::MAX;
-
-impl MotionNoise for FrontendNoise {
-    fn covariance(&self, distance: f64, rotation: f64) -> Cov3 {
-        FrontendNoise::covariance(self, distance, rotation)
-    }
-}
-
-impl MapperConfig {
-    /// The front-end's part of the configuration.
-    fn lidar(&self) -> LidarParams<'_> {
-        LidarParams {
-            icp: &self.icp,
-            min_fitness: self.min_fitness,
-            turn_reseed: self.turn_reseed,
-            turn_reseed_rms: self.turn_reseed_rms,
-            stall_motion: self.stall_motion,
-        }
-    }
-
-    /// The back-end schedule's part of the configuration.
-    fn schedule(&self) -> ScheduleParams {
-        ScheduleParams {
-            every_keyframes: self.backend.every_keyframes,
-            max_iterations: self.backend.max_iterations,
-            gate_chi2: self.backend.gate_chi2,
-            work_budget: self.backend.work_budget,
-        }
-    }
-}
 
 /// Small mutable state of the mapper, one part per stage (kept in the resources so the mapper
 /// itself is a set of borrows).
