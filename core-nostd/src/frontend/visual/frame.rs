@@ -147,6 +147,10 @@ impl FrameFeatures {
             let Some(level) = pyramid.level(l) else {
                 break;
             };
+            // A level without corners needs no smoothed copy.
+            if !found.iter().any(|k| usize::from(k.level) == l) {
+                continue;
+            }
             let smoothed = smooth_into(&level, smooth_store)?;
             for kp in found.iter().filter(|k| usize::from(k.level) == l) {
                 let Some(d) = describe(&smoothed, kp) else {

@@ -88,10 +88,8 @@ impl BearingPair {
     }
 }
 
-/// Epipolar residual of one match for frame B at `motion` from frame A (both robot poses
-/// relative to frame A's).
-fn residual(mount: &CameraExtrinsic, cam_a: &CameraPose, motion: &Se2, m: &BearingPair) -> f64 {
-    let cam_b = CameraPose::of_robot(motion, mount);
+/// Epipolar residual of one match with frame A's camera at `cam_a` and frame B's at `cam_b`.
+fn residual(cam_a: &CameraPose, cam_b: &CameraPose, m: &BearingPair) -> f64 {
     let (da, db) = (cam_a.rotation * m.a, cam_b.rotation * m.b);
     let normal = da.cross(&db);
     let baseline = cam_b.centre - cam_a.centre;
@@ -143,23 +141,28 @@ pub fn refine_planar_motion(
             cfg.huber * (a - 0.5 * cfg.huber)
         }
     };
+    // Frame B's camera for a heading change `theta` (placed once per trial, not per match).
+    let camera_b = |theta: f64| CameraPose::of_robot(&motion_of(theta), mount);
     let cost = |theta: f64| -> f64 {
-        let motion = motion_of(theta);
+        let cam_b = camera_b(theta);
         matches
             .iter()
-            .map(|m| huber(residual(mount, &cam_a, &motion, m)))
+            .map(|m| huber(residual(&cam_a, &cam_b, m)))
             .sum()
     };
     let mut theta = odometry.theta;
     let mut current = cost(theta);
     const STEP: f64 = 1e-6;
     for _ in 0..cfg.iterations {
+        let (at, up, down) = (
+            camera_b(theta),
+            camera_b(theta + STEP),
+            camera_b(theta - STEP),
+        );
         let (mut h, mut g) = (0.0, 0.0);
         for m in matches {
-            let r = residual(mount, &cam_a, &motion_of(theta), m);
-            let j = (residual(mount, &cam_a, &motion_of(theta + STEP), m)
-                - residual(mount, &cam_a, &motion_of(theta - STEP), m))
-                / (2.0 * STEP);
+            let r = residual(&cam_a, &at, m);
+            let j = (residual(&cam_a, &up, m) - residual(&cam_a, &down, m)) / (2.0 * STEP);
             let w = if libm::fabs(r) <= cfg.huber {
                 1.0
             } else {
@@ -188,10 +191,10 @@ pub fn refine_planar_motion(
             break;
         }
     }
-    let motion = motion_of(theta);
+    let (motion, cam_b) = (motion_of(theta), camera_b(theta));
     let residuals = scratch.get_mut(..n).unwrap_or_default();
     for (slot, m) in residuals.iter_mut().zip(matches) {
-        *slot = libm::fabs(residual(mount, &cam_a, &motion, m));
+        *slot = libm::fabs(residual(&cam_a, &cam_b, m));
     }
     let mid = n / 2;
     crate::sort::select_nth_by(residuals, mid, |a, b| a.total_cmp(b));
