@@ -13,10 +13,13 @@
 //!    it leaves a direction weak (the heading in a round hall, a hall mostly beyond the
 //!    LiDAR's range, the axis of a corridor) the wheels and the gyro decide it in proportion
 //!    to the two informations, instead of the match sliding into a wrong minimum;
-//! 3. **stall compensation**: when the odometry reports exactly no motion while the matcher
-//!    sees the robot move, the stream has stalled and will report that motion later in one
-//!    increment; the motion seen meanwhile is taken off that increment so it is not seeded
-//!    twice.
+//! 3. **stall compensation**: when the odometry reports exactly no motion for two scans or
+//!    more while the matcher sees the robot move, the stream has stalled and will report that
+//!    motion later in one increment; the motion seen meanwhile is taken off that increment so
+//!    it is not seeded twice. A single still scan is an odometry that lags by a frame when the
+//!    robot starts to move (intel's does, dozens of times), whose next increments are each a
+//!    frame late rather than a burst: taking the first frame's motion off would seed the
+//!    second with none.
 //!
 //! The noise model is a preset, not this robot's calibration: real odometry may slip, or be
 //! stamped a frame late (as in the CARMEN logs), and then a prior that trusts the model drags
@@ -59,6 +62,9 @@ const RESEED_FITNESS_SLACK: f32 = 0.05;
 /// ... and must bring the RMS residual below this share of the best one: clearly better only,
 /// so a wrong minimum near a good one cannot win on noise.
 const RESEED_RMS_RATIO: f64 = 0.7;
+
+/// Fewest still scans with matched motion that make a stall (module docs, step 3).
+const MIN_STALL_SCANS: u32 = 2;
 
 /// Path length (metres) and absolute rotation (radians) travelled by the front-end.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -151,8 +157,11 @@ pub struct LidarFrontend {
     previous: Option<PreviousScan>,
     pose: Se2,
     /// Motion the matcher measured while the odometry stood still, not reported by the
-    /// odometry yet: taken off its next increment.
+    /// odometry yet: taken off its next increment when the stall lasted
+    /// [`MIN_STALL_SCANS`] scans or more.
     stall: Se2,
+    /// Scans of the current still stretch in which the matcher saw motion.
+    stall_scans: u32,
     travel: Travel,
     /// Running mean of the normalized squared difference between the match and the odometry's
     /// prediction over three (1 when the noise model is right); the prediction's covariance is
@@ -178,6 +187,7 @@ impl LidarFrontend {
             previous: None,
             pose: Se2::IDENTITY,
             stall: Se2::IDENTITY,
+            stall_scans: 0,
             travel: Travel::ZERO,
             noise_scale: NOISE_SCALE_MAX,
             noise_samples: 0,
@@ -281,7 +291,10 @@ impl LidarFrontend {
             (Some(a), Some(b)) if a == b => (Se2::IDENTITY, true),
             // The first increment after a stall carries the motion the stall hid, part of
             // which the scan matcher has already measured.
-            (Some(a), Some(b)) => (self.stall.inverse().compose(&a.between(&b)), false),
+            (Some(a), Some(b)) if self.stall_scans >= MIN_STALL_SCANS => {
+                (self.stall.inverse().compose(&a.between(&b)), false)
+            }
+            (Some(a), Some(b)) => (a.between(&b), false),
             _ => {
                 if self.previous.is_some() {
                     self.counters.odometry_gaps += 1;
@@ -386,9 +399,11 @@ impl LidarFrontend {
             {
                 self.counters.odometry_stalls += 1;
                 self.stall = self.stall.compose(step);
+                self.stall_scans += 1;
             }
         } else {
             self.stall = Se2::IDENTITY;
+            self.stall_scans = 0;
         }
     }
 }

@@ -267,7 +267,7 @@ impl Default for MapperConfig {
             min_fitness: 0.5,
             turn_reseed: 0.05,
             turn_reseed_rms: 0.0,
-            stall_motion: None,
+            stall_motion: Some(Self::STALL_MOTION),
             keyframe: KeyframeConfig::default(),
             local_radius: 30.0,
             local_reset: 3.0,
@@ -286,15 +286,14 @@ impl Default for MapperConfig {
 }
 
 impl MapperConfig {
-    /// The [`MapperConfig::stall_motion`] thresholds of the `home` profile: 1 cm, 0.01 rad.
+    /// The [`MapperConfig::stall_motion`] thresholds of every profile: 1 cm, 0.01 rad.
     pub const STALL_MOTION: [f64; 2] = [0.01, 0.01];
 
     /// The `home` profile (a cleaning robot in a home, [`crate::profile::HOME`]): 4.1 m
     /// submaps, a 10 m LiDAR, loop searches within 1.5 m and 0.5 rad (the drift between
     /// revisits of a small home is small), windows from the motion since the last loop
-    /// closure (the cheaper search), rotated turn seeds only for a primary match above 5 cm
-    /// RMS, and stalled odometry taken off its next increment. `docs/benchmarks.md` has the
-    /// measurements behind the front-end choices.
+    /// closure (the cheaper search), and rotated turn seeds only for a primary match above
+    /// 5 cm RMS. `docs/benchmarks.md` has the measurements behind the front-end choices.
     pub fn home() -> Self {
         let base = MapperConfig::default();
         MapperConfig {
@@ -302,7 +301,6 @@ impl MapperConfig {
             submap_length: 1.5,
             max_range: 10.0,
             turn_reseed_rms: 0.05,
-            stall_motion: Some(Self::STALL_MOTION),
             loops: LoopConfig {
                 window_max: 1.5,
                 angle_max: 0.5,

@@ -324,6 +324,36 @@ fn a_stalled_odometry_does_not_seed_its_hidden_turn_twice() {
 }
 
 #[test]
+fn an_odometry_one_frame_late_is_not_taken_for_a_stall() {
+    with_stack(|| {
+        let turn = second_turn();
+        // The odometry misses one frame of the turn and reports it with the next: a lag, not a
+        // stall, so nothing is taken off the next increment.
+        let late = turn.start + 1;
+        let cfg = MapperConfig {
+            turn_reseed: 0.0,
+            ..config()
+        };
+        let compensating = run_with(cfg, false, &move |i| i == late);
+        let plain = run_with(
+            MapperConfig {
+                stall_motion: None,
+                ..cfg
+            },
+            false,
+            &move |i| i == late,
+        );
+        assert_eq!(
+            compensating.stats.odometry_stalls, 1,
+            "{:?}",
+            compensating.stats
+        );
+        let poses = |r: &Run| r.outputs.iter().map(|o| o.frontend).collect::<Vec<_>>();
+        assert_eq!(poses(&compensating), poses(&plain));
+    });
+}
+
+#[test]
 fn runs_are_bit_identical() {
     with_stack(|| {
         let a = run(config());
