@@ -216,9 +216,9 @@ pub struct MapperConfig {
     /// which is what brings the front-end's p99 under its budget on the robot's processor.
     pub turn_reseed_rms: f64,
     /// Stalled odometry: a scan-matcher step above `[metres, radians]` while the odometry
-    /// reports exactly no motion counts as motion the odometry has not reported yet (the
-    /// stream stalled, as it does three times in mit-csail, hiding about 0.8 rad of turn
-    /// each time); it is taken off the odometry's next increment, which would otherwise seed
+    /// reports exactly no motion, for two scans or more (one is a frame of lag), counts as
+    /// motion the odometry has not reported yet (the stream stalled, as it does three times in
+    /// mit-csail, hiding about 0.8 rad of turn each time); it is taken off the odometry's next increment, which would otherwise seed
     /// that scan with the whole hidden turn again. `None` leaves the odometry as it is.
     pub stall_motion: Option<[f64; 2]>,
     /// Keyframe thresholds.
