@@ -19,13 +19,17 @@
 # The seeds, sizes and gyro variants were fixed before any result was seen; do not edit the
 # list to make the figures look better.
 #
-#   bench/generalize.sh [--quick] [--heldout] [--perturb] [--only REGEX] [--jobs 2] [--out target/bench-generalize]
+#   bench/generalize.sh [--quick] [--heldout] [--perturb] [--noise N] [--only REGEX] [--jobs 2] [--out target/bench-generalize]
 #
 # --quick:   5 small and medium worlds, no CARMEN logs (a few minutes; for CI).
 # --heldout: 8 worlds no setting was chosen on (see HELDOUT_WORLDS), no CARMEN logs.
 # --perturb: each CARMEN log under 8 perturbations of the loop-closure and front-end settings
 #            (--config files written to OUT/perturb), printing each run's error and the spread
 #            (worst / unperturbed).
+# --noise N: map every generated world N times, with N draws of the sensor noise (simulator
+#            seeds SEED, SEED + 100000, SEED + 200000, ...; the building and route stay the
+#            same); the summary then counts every run, and a second table gives each world's
+#            spread. One draw says little where a loop closure is found or missed by luck.
 # --only:    keep only the runs (worlds and logs) whose name matches the extended regular
 #            expression, e.g. --only 'gen:(107|201)|intel' to look again at a few of them; the
 #            summary lines then describe that subset, not the benchmark.
@@ -55,6 +59,7 @@ mode=full
 jobs=2
 out=target/bench-generalize
 only=
+noise=1
 while [ $# -gt 0 ]; do
   case "$1" in
     --quick) mode=quick; shift ;;
@@ -63,6 +68,7 @@ while [ $# -gt 0 ]; do
     --jobs) jobs=$2; shift 2 ;;
     --out) out=$2; shift 2 ;;
     --only) only=$2; shift 2 ;;
+    --noise) noise=$2; shift 2 ;;
     *) echo "unknown option $1" >&2; exit 2 ;;
   esac
 done
@@ -71,13 +77,16 @@ cargo build -q --release -p cloi-host --bin cloi
 cloi=$PWD/target/release/cloi
 mkdir -p "$out"
 
-# One generated world: simulate one lap for the ground truth, map the same simulation in
-# process (deterministic), score. Writes OUT/NAME/row.json.
+# One generated world under noise draw K (0: the simulator seed is the world's): simulate
+# one lap for the ground truth, map the same simulation in process (deterministic), score.
+# Writes OUT/NAME/row.json.
 run_world() {
-  local world=$1 dir seed profile dur t0 t1
-  dir="$out/${world//:/_}"
+  local world=$1 k=${2:-0} dir seed profile dur t0 t1 name
+  name=$world
+  [ "$k" -gt 0 ] && name="$world~n$k"
+  dir="$out/$(run_dir "$name")"
   rm -rf "$dir"; mkdir -p "$dir"
-  seed=$(cut -d: -f2 <<< "$world")
+  seed=$(( $(cut -d: -f2 <<< "$world") + 100000 * k ))
   case "$world" in *:xl*) profile=airport ;; *) profile=office ;; esac
   "$cloi" sim --world "$world" --sensors L --laps 1 --seed "$seed" --out "$dir/sim.mcap" \
     > "$dir/sim.txt"
@@ -97,7 +106,7 @@ run_world() {
   else
     t1=$(date +%s.%N)
   fi
-  python3 - "$world" "$dir" "$dur" "$t0" "$t1" "$profile" <<'PY'
+  python3 - "$name" "$dir" "$dur" "$t0" "$t1" "$profile" <<'PY'
 import json, os, sys
 world, d, dur, t0, t1, profile = sys.argv[1:]
 def load(name):
@@ -116,6 +125,12 @@ row = {"run": world, "kind": "world", "profile": profile, "data_s": float(dur),
        "unchecked_loops": loops["unchecked"] if loops else None}
 json.dump(row, open(os.path.join(d, "row.json"), "w"))
 PY
+}
+
+# The folder of one run under OUT.
+run_dir() {
+  local d=${1//:/_}
+  echo "${d//\~/_}"
 }
 
 # One CARMEN log with an optional --config: map, score against GMapping's reference poses.
@@ -202,6 +217,27 @@ print(f"wall time: {sum(r['wall_s'] for r in rows):.0f} s of mapping in total")
 PY
 }
 
+# Each generated world's final error over its noise draws (--noise).
+spread() {
+  python3 - "$@" <<'PY'
+import json, statistics, sys
+rows = [json.load(open(p)) for p in sys.argv[1:]]
+by = {}
+for r in rows:
+    if r["kind"] == "world":
+        by.setdefault(r["run"].split("~")[0], []).append(r["final_m"])
+print("\n| world | draws | min m | median m | max m | failed draws |")
+print("|---|---:|---:|---:|---:|---:|")
+robust = 0
+for w, v in by.items():
+    v = [float("inf") if x is None else x for x in v]
+    failed = sum(1 for x in v if x > 0.3)
+    robust += failed == 0
+    print(f"| {w} | {len(v)} | {min(v):.3f} | {statistics.median(v):.3f} | {max(v):.3f} | {failed} |")
+print(f"\nworlds mapped right under every noise draw: {robust} of {len(by)}")
+PY
+}
+
 started=$(date +%s)
 case "$mode" in
   quick|heldout|full)
@@ -217,14 +253,23 @@ case "$mode" in
     {
       # The long CARMEN logs first, so they do not finish last alone.
       for log in "${logs[@]}"; do echo "run_log $log"; done
-      for w in "${list[@]}"; do echo "run_world $w"; done
+      for k in $(seq 0 $((noise - 1))); do
+        for w in "${list[@]}"; do echo "run_world $w $k"; done
+      done
     } | run_all
     rows=()
-    for f in "${logs[@]/#/$out/}" "${list[@]//:/_}"; do
-      case "$f" in gen_*) f="$out/$f" ;; esac
-      if [ -f "$f/row.json" ]; then rows+=("$f/row.json"); else echo "no result for $f" >&2; fi
+    runs=("${logs[@]}")
+    for k in $(seq 0 $((noise - 1))); do
+      for w in "${list[@]}"; do
+        if [ "$k" -gt 0 ]; then runs+=("$w~n$k"); else runs+=("$w"); fi
+      done
+    done
+    for r in "${runs[@]}"; do
+      f="$out/$(run_dir "$r")"
+      if [ -f "$f/row.json" ]; then rows+=("$f/row.json"); else echo "no result for $r" >&2; fi
     done
     table "${rows[@]}"
+    if [ "$noise" -gt 1 ]; then spread "${rows[@]}"; fi
     ;;
   perturb)
     pdir="$out/perturb"
