@@ -218,8 +218,9 @@ pub struct MapperConfig {
     /// Stalled odometry: a scan-matcher step above `[metres, radians]` while the odometry
     /// reports exactly no motion, for two scans or more (one is a frame of lag), counts as
     /// motion the odometry has not reported yet (the stream stalled, as it does three times in
-    /// mit-csail, hiding about 0.8 rad of turn each time); it is taken off the odometry's next increment, which would otherwise seed
-    /// that scan with the whole hidden turn again. `None` leaves the odometry as it is.
+    /// mit-csail, hiding about 0.8 rad of turn each time); it is taken off the odometry's next
+    /// increment, which would otherwise seed that scan with the whole hidden turn again.
+    /// `None` leaves the odometry as it is.
     pub stall_motion: Option<[f64; 2]>,
     /// Keyframe thresholds.
     pub keyframe: KeyframeConfig,
