@@ -82,8 +82,7 @@ mkdir -p "$out"
 # Writes OUT/NAME/row.json.
 run_world() {
   local world=$1 k=${2:-0} dir seed profile dur t0 t1 name
-  name=$world
-  [ "$k" -gt 0 ] && name="$world~n$k"
+  name=$(run_name "$world" "$k")
   dir="$out/$(run_dir "$name")"
   rm -rf "$dir"; mkdir -p "$dir"
   seed=$(( $(cut -d: -f2 <<< "$world") + 100000 * k ))
@@ -125,6 +124,11 @@ row = {"run": world, "kind": "world", "profile": profile, "data_s": float(dur),
        "unchecked_loops": loops["unchecked"] if loops else None}
 json.dump(row, open(os.path.join(d, "row.json"), "w"))
 PY
+}
+
+# The name of WORLD's run under noise draw K (the table's first column).
+run_name() {
+  if [ "$2" -gt 0 ]; then echo "$1~n$2"; else echo "$1"; fi
 }
 
 # The folder of one run under OUT.
@@ -250,20 +254,19 @@ case "$mode" in
       mapfile -t list < <(printf '%s\n' "${list[@]}" | grep -E -- "$only" || true)
       mapfile -t logs < <(printf '%s\n' "${logs[@]}" | grep -E -- "$only" || true)
     fi
+    # "WORLD K" per run of a generated world, draw by draw.
+    draws=()
+    for k in $(seq 0 $((noise - 1))); do
+      for w in "${list[@]}"; do draws+=("$w $k"); done
+    done
     {
       # The long CARMEN logs first, so they do not finish last alone.
       for log in "${logs[@]}"; do echo "run_log $log"; done
-      for k in $(seq 0 $((noise - 1))); do
-        for w in "${list[@]}"; do echo "run_world $w $k"; done
-      done
+      for d in "${draws[@]}"; do echo "run_world $d"; done
     } | run_all
     rows=()
     runs=("${logs[@]}")
-    for k in $(seq 0 $((noise - 1))); do
-      for w in "${list[@]}"; do
-        if [ "$k" -gt 0 ]; then runs+=("$w~n$k"); else runs+=("$w"); fi
-      done
-    done
+    for d in "${draws[@]}"; do runs+=("$(run_name $d)"); done
     for r in "${runs[@]}"; do
       f="$out/$(run_dir "$r")"
       if [ -f "$f/row.json" ]; then rows+=("$f/row.json"); else echo "no result for $r" >&2; fi
