@@ -97,9 +97,7 @@ fn csail_beats_gmapping_and_repeats_exactly() {
     }
     let err = relation_error(&a, &ra, &reference, 500);
     println!("mit-csail: relation error {err:.4} m, report {ra}");
-    // Measured 0.0405 m (2026-12-05, stall compensation in every profile; 0.0394 m before, but
-    // 0.70-0.77 m under three of the eight `--perturb` settings); GMapping's published figure
-    // is the bound.
+    // Measured 0.0416 m (2026-12-05); GMapping's published figure is the bound.
     assert!(err < 0.049, "relation error {err} m");
     assert!(ra["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{ra}");
 }
@@ -120,8 +118,7 @@ fn fr079_beats_gmapping() {
     assert_eq!(ra["input"]["laser_offset"][0].as_f64(), Some(-0.04), "{ra}");
     let err = relation_error(&a, &ra, &reference, 500);
     println!("fr079: relation error {err:.4} m, report {ra}");
-    // Measured 0.0373 m (2026-12-05, stall compensation in every profile; 0.0374 m before);
-    // GMapping's published figure is the bound.
+    // Measured 0.0373 m (2026-12-05); GMapping's published figure is the bound.
     assert!(err < 0.061, "relation error {err} m");
     assert!(ra["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{ra}");
 }
@@ -141,9 +138,8 @@ fn intel_cut_stays_within_its_bound_and_has_no_jumps() {
     let ra = map(&log, &a, &[&cut[..], &["--deterministic"]].concat());
     let err = relation_error(&a, &ra, &reference, 500);
     println!("intel first 4000 scans: relation error {err:.4} m, report {ra}");
-    // Measured 0.0423 m (2026-12-05, stall compensation in every profile; 0.0431 m before;
-    // 0.0437 m on 2026-11-29 with whole solves per step; 0.605 m while the loop-search window shrank after every
-    // local loop closure and the first big loops of the cut were missed); 5 % margin.
+    // Measured 0.0422 m (2026-12-05); about 10 % margin. A cut that misses its first big loops
+    // (as when the loop-search window shrinks after every local closure) scores 0.6 m.
     assert!(err < 0.046, "relation error {err} m");
     assert_eq!(ra["stamps_repaired"].as_u64(), Some(494), "{ra}");
     assert!(ra["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{ra}");
@@ -180,10 +176,8 @@ fn intel_stays_consistent_when_loop_search_changes() {
         let r = map(&log, &dir, &extra);
         let err = relation_error(&dir, &r, &reference, 5000);
         println!("intel ({name}): relation error {err:.4} m, report {r}");
-        // Measured 0.0376 m (preset) and 0.0371 m (5 candidates) on 2026-12-05 with stall
-        // compensation in every profile; 0.0389 m and 0.0385 m on 2026-12-03; 0.0379 m (preset, 2026-12-02, whole solves per step; 0.0415 m
-        // without the odometry prior) and 0.0400 m (5 candidates, 2026-11-29); before the
-        // window change 0.0515 m and 0.73 m. The old preset figure is the bound.
+        // Measured 0.0375 m (preset) and 0.0370 m (5 candidates) on 2026-12-05; the bound is
+        // the preset's figure before the loop-search window followed each submap's anchor.
         assert!(err < 0.0515, "{name}: relation error {err} m");
         assert!(r["gpe_max_jump_m"].as_f64().expect("jump") < 0.05, "{r}");
         if name == "preset" {

@@ -83,6 +83,19 @@ pub fn symmetrize(m: &Matrix3<f64>) -> Matrix3<f64> {
     (m + m.transpose()) * 0.5
 }
 
+/// The information `info` of a pose estimated with its translation in the world frame (a
+/// scan match moves `x`, `y` along the world axes), re-expressed for a relative-pose edge
+/// whose residual has its translation in the frame of the measurement `z` (the g2o
+/// convention of [`PoseEdge::residual`](crate::graph::PoseEdge::residual)): `J info J^T`
+/// with `J = diag(R(-z.theta), 1)`. Without this, a match that pins a corridor's lateral
+/// position would, seen from a keyframe turned by 90 degrees, pin its position along the
+/// corridor instead.
+pub fn information_in_frame_of(info: &Info3, z: &Se2) -> Info3 {
+    let (c, s) = (libm::cos(z.theta), libm::sin(z.theta));
+    let j = Matrix3::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
+    symmetrize(&(j * info * j.transpose()))
+}
+
 /// Leading principal minors `(m1, m2, m3)` of the symmetric part of `m`; `m` is positive
 /// definite exactly when all three are positive (Sylvester's criterion), and the pivots of its
 /// Cholesky factorization are `m1`, `m2 / m1`, `m3 / m2`.
@@ -192,6 +205,33 @@ pub fn zero_constraint_information(sigma_xy: f64, sigma_theta: f64, max_informat
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn information_follows_the_edge_residual_frame() {
+        use crate::graph::{EdgeKind, PoseEdge};
+        use crate::storage::NodeId;
+        // A match in a corridor along the world's y axis: the lateral position (x) is pinned,
+        // the position along the corridor (y) is weak. The keyframe is turned a quarter turn
+        // in that frame, so the edge's residual has x along the corridor.
+        let world_info = Info3::new(1e4, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1e3);
+        let z = Se2::new(2.0, 5.0, core::f64::consts::FRAC_PI_2 + 0.1);
+        let mut edge = PoseEdge::new(NodeId(0), NodeId(1), z, Info3::identity(), EdgeKind::Loop);
+        edge.information = information_in_frame_of(&world_info, &z);
+        for (dx, dy) in [(0.0, 1.0), (0.1, 0.0), (0.3, -0.4)] {
+            let moved = Se2::new(z.x + dx, z.y + dy, z.theta);
+            let e = edge.residual(&Se2::IDENTITY, &moved);
+            let e = Vector3::new(e[0], e[1], e[2]);
+            let d = Vector3::new(dx, dy, 0.0);
+            let (got, want) = (
+                (e.transpose() * edge.information * e)[0],
+                (d.transpose() * world_info * d)[0],
+            );
+            assert!(
+                (got - want).abs() < 1e-9 * want.max(1.0),
+                "{dx} {dy}: {got} vs {want}"
+            );
+        }
+    }
 
     #[test]
     fn compounding_exact_poses_has_zero_covariance() {

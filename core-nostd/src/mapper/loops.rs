@@ -26,7 +26,7 @@ use crate::frontend::csm::{search, CsmConfig, Pyramid};
 use crate::frontend::lidar::{MotionNoise, Travel};
 use crate::frontend::scan::ScanPoint;
 use crate::frontend::{align, IcpConfig, KdTree, Submap};
-use crate::geom::{spd_inverse, Info3, Se2};
+use crate::geom::{information_in_frame_of, spd_inverse, Info3, Se2};
 use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
 use crate::storage::NodeId;
 
@@ -385,7 +385,10 @@ impl Mapper<'_> {
         cov[(0, 0)] += sxy * sxy;
         cov[(1, 1)] += sxy * sxy;
         cov[(2, 2)] += sth * sth;
-        Some((refined.pose, spd_inverse(&cov)?))
+        // The match's information is over world-axis steps of the submap frame; the loop
+        // edge's residual has its translation in the measurement's frame.
+        let info = spd_inverse(&cov)?;
+        Some((refined.pose, information_in_frame_of(&info, &refined.pose)))
     }
 }
 
