@@ -113,6 +113,7 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         max_scans: None,
         stamps: StampPolicy::FileOrder,
         progress: false,
+        keep_gpe: true,
     };
     let input = open_input(&log, &InputOptions::default()).unwrap();
     let host = run(input, &settings).expect("cloi map on x86-64");

@@ -156,38 +156,89 @@ fn draw_line(img: &mut RgbImage, a: (f64, f64), b: (f64, f64), color: Rgb<u8>) {
     }
 }
 
+/// The map picture in colour with a trajectory drawn on it in red, one point at a time (a path
+/// of any length is drawn without being held), its start marked in green.
+#[derive(Debug)]
+pub struct TrajectoryPicture<'g> {
+    grid: GridRef<'g>,
+    img: RgbImage,
+    first: Option<(f64, f64)>,
+    last: Option<(f64, f64)>,
+}
+
+impl<'g> TrajectoryPicture<'g> {
+    /// The map of `grid` in grey, no trajectory yet.
+    ///
+    /// # Errors
+    /// An inconsistent grid.
+    pub fn new(grid: GridRef<'g>) -> Result<Self> {
+        let grey = grid.to_image(MapThresholds::default())?;
+        let img = RgbImage::from_fn(grey.width(), grey.height(), |x, y| {
+            let v = grey.get_pixel(x, y).0[0];
+            Rgb([v, v, v])
+        });
+        Ok(TrajectoryPicture {
+            grid,
+            img,
+            first: None,
+            last: None,
+        })
+    }
+
+    /// Draws the trajectory on to the map-frame point `(x, y)`.
+    pub fn push(&mut self, x: f64, y: f64) {
+        if let Some(a) = self.last {
+            draw_line(
+                &mut self.img,
+                self.grid.to_pixel(a.0, a.1),
+                self.grid.to_pixel(x, y),
+                Rgb([220, 30, 30]),
+            );
+        }
+        self.first.get_or_insert((x, y));
+        self.last = Some((x, y));
+    }
+
+    /// The picture, with the start marked over the path.
+    pub fn finish(mut self) -> RgbImage {
+        if let Some((x, y)) = self.first {
+            let (px, py) = self.grid.to_pixel(x, y);
+            for dy in -1..=1 {
+                for dx in -1..=1 {
+                    let (qx, qy) = (px + f64::from(dx), py + f64::from(dy));
+                    draw_line(&mut self.img, (qx, qy), (qx, qy), Rgb([30, 160, 30]));
+                }
+            }
+        }
+        self.img
+    }
+
+    /// Writes the picture as a PNG file (atomically).
+    ///
+    /// # Errors
+    /// An IO error.
+    pub fn write_png(self, path: &Path) -> Result<()> {
+        let img = self.finish();
+        let mut bytes = Vec::new();
+        img.write_to(
+            &mut std::io::Cursor::new(&mut bytes),
+            image::ImageFormat::Png,
+        )?;
+        atomic::write_file(path, &bytes)
+    }
+}
+
 /// The map picture in colour with a trajectory (`(x, y)` map-frame points) drawn in red and
 /// its start marked in green.
 ///
 /// # Errors
 /// An inconsistent grid.
 pub fn map_with_trajectory(grid: &GridRef<'_>, trajectory: &[(f64, f64)]) -> Result<RgbImage> {
-    let grey = grid.to_image(MapThresholds::default())?;
-    let mut img = RgbImage::from_fn(grey.width(), grey.height(), |x, y| {
-        let v = grey.get_pixel(x, y).0[0];
-        Rgb([v, v, v])
-    });
-    let red = Rgb([220, 30, 30]);
-    for w in trajectory.windows(2) {
-        if let [a, b] = w {
-            draw_line(
-                &mut img,
-                grid.to_pixel(a.0, a.1),
-                grid.to_pixel(b.0, b.1),
-                red,
-            );
-        }
+    let mut picture = TrajectoryPicture::new(*grid)?;
+    for &(x, y) in trajectory {
+        picture.push(x, y);
     }
-    if let Some(&(x, y)) = trajectory.first() {
-        let (px, py) = grid.to_pixel(x, y);
-        for dy in -1..=1 {
-            for dx in -1..=1 {
-                let (qx, qy) = (px + f64::from(dx), py + f64::from(dy));
-                draw_line(&mut img, (qx, qy), (qx, qy), Rgb([30, 160, 30]));
-            }
-        }
-    }
-    Ok(img)
+    Ok(picture.finish())
 }
 
 /// Writes `map.png` (or any `.png` path) with the trajectory drawn.
@@ -195,65 +246,156 @@ pub fn map_with_trajectory(grid: &GridRef<'_>, trajectory: &[(f64, f64)]) -> Res
 /// # Errors
 /// An inconsistent grid or an IO error.
 pub fn write_map_png(path: &Path, grid: &GridRef<'_>, trajectory: &[(f64, f64)]) -> Result<()> {
-    let img = map_with_trajectory(grid, trajectory)?;
-    let mut bytes = Vec::new();
-    img.write_to(
-        &mut std::io::Cursor::new(&mut bytes),
-        image::ImageFormat::Png,
-    )?;
-    atomic::write_file(path, &bytes)
+    let mut picture = TrajectoryPicture::new(*grid)?;
+    for &(x, y) in trajectory {
+        picture.push(x, y);
+    }
+    picture.write_png(path)
 }
 
 /// A trajectory pose for `result.mcap`: time (ns) and planar pose.
 pub type TimedPose2 = (i64, (f64, f64, f64));
 
-/// Writes `result.mcap`: the map on `/map` (`nav_msgs/OccupancyGrid`, which Foxglove draws),
-/// the whole trajectory on `/trajectory` (`nav_msgs/Path`), and each pose on `/pose`
-/// (`geometry_msgs/PoseStamped`) at its own time, all in frame `map`.
+/// Most poses of the `/trajectory` path in `result.mcap`.
+pub const MAX_PATH_POSES: usize = 16_384;
+
+/// The poses of a path of unknown length, evenly thinned to at most [`MAX_PATH_POSES`]: every
+/// `stride`-th pose is kept, and when the buffer fills every other kept pose goes and the
+/// stride doubles.
+#[derive(Debug, Default)]
+struct ThinnedPath {
+    poses: Vec<PoseStamped>,
+    stride: u64,
+    seen: u64,
+    newest: Option<PoseStamped>,
+}
+
+impl ThinnedPath {
+    fn push(&mut self, p: PoseStamped) {
+        let stride = self.stride.max(1);
+        if self.seen.is_multiple_of(stride) {
+            if self.poses.len() == MAX_PATH_POSES {
+                let mut k = 0;
+                self.poses.retain(|_| {
+                    k += 1;
+                    k % 2 == 1
+                });
+                self.stride = stride * 2;
+            }
+            if self.seen.is_multiple_of(self.stride.max(1)) {
+                self.poses.push(p.clone());
+            }
+        }
+        self.seen += 1;
+        self.newest = Some(p);
+    }
+
+    /// The kept poses, ending with the newest.
+    fn finish(mut self) -> Vec<PoseStamped> {
+        if let Some(n) = self.newest {
+            if self.poses.last() != Some(&n) {
+                self.poses.push(n);
+            }
+        }
+        self.poses
+    }
+}
+
+/// `result.mcap` written as the poses come: the map on `/map` (`nav_msgs/OccupancyGrid`,
+/// which Foxglove draws) at the start and again at the end, each pose on `/pose`
+/// (`geometry_msgs/PoseStamped`) at its own time, and at the end the path on `/trajectory`
+/// (`nav_msgs/Path`, thinned to at most [`MAX_PATH_POSES`] poses), all in frame `map`.
+#[derive(Debug)]
+pub struct ResultMcap {
+    bag: BagWriter,
+    map: OccupancyGrid,
+    path: ThinnedPath,
+    start: i64,
+    end: i64,
+}
+
+impl ResultMcap {
+    /// Starts `path` with the map of `grid` at `start` (ns).
+    ///
+    /// # Errors
+    /// An inconsistent grid or an IO error.
+    pub fn create(path: &Path, grid: &GridRef<'_>, start: i64) -> Result<Self> {
+        grid.check()?;
+        let start = start.max(0);
+        let mut bag = BagWriter::create(path)?;
+        let map = OccupancyGrid {
+            header: Header::new(Time::from_nanos(start), "map"),
+            info: MapMetaData {
+                map_load_time: Time::from_nanos(start),
+                resolution: grid.resolution as f32,
+                width: grid.width as u32,
+                height: grid.height as u32,
+                origin: Pose::planar(grid.origin.0, grid.origin.1, grid.origin.2),
+            },
+            data: grid.cells.to_vec(),
+        };
+        // The map first, so a viewer has it from the beginning.
+        bag.write("/map", start, &map)?;
+        Ok(ResultMcap {
+            bag,
+            map,
+            path: ThinnedPath::default(),
+            start,
+            end: start,
+        })
+    }
+
+    /// Adds the pose `(x, y, theta)` at `t` (ns).
+    ///
+    /// # Errors
+    /// An IO error.
+    pub fn pose(&mut self, t: i64, (x, y, theta): (f64, f64, f64)) -> Result<()> {
+        let p = PoseStamped {
+            header: Header::new(Time::from_nanos(t), "map"),
+            pose: Pose::planar(x, y, theta),
+        };
+        let t = t.max(0);
+        self.bag.write("/pose", t, &p)?;
+        self.end = self.end.max(t);
+        self.path.push(p);
+        Ok(())
+    }
+
+    /// Writes the path and the map again at the last pose's time, and closes the file.
+    ///
+    /// # Errors
+    /// An IO error.
+    pub fn finish(mut self) -> Result<()> {
+        let end = self.end;
+        self.bag.write(
+            "/trajectory",
+            end,
+            &PathMsg {
+                header: Header::new(Time::from_nanos(end), "map"),
+                poses: self.path.finish(),
+            },
+        )?;
+        if end != self.start {
+            self.map.header = Header::new(Time::from_nanos(end), "map");
+            self.map.info.map_load_time = Time::from_nanos(end);
+            self.bag.write("/map", end, &self.map)?;
+        }
+        self.bag.finish()?;
+        Ok(())
+    }
+}
+
+/// Writes `result.mcap` of a whole trajectory (see [`ResultMcap`]).
 ///
 /// # Errors
 /// An inconsistent grid or an IO error.
 pub fn write_result_mcap(path: &Path, grid: &GridRef<'_>, trajectory: &[TimedPose2]) -> Result<()> {
-    grid.check()?;
-    let end = trajectory.last().map_or(0, |p| p.0.max(0));
-    let start = trajectory.first().map_or(0, |p| p.0.max(0));
-    let mut bag = BagWriter::create(path)?;
-    let poses: Vec<PoseStamped> = trajectory
-        .iter()
-        .map(|&(t, (x, y, th))| PoseStamped {
-            header: Header::new(Time::from_nanos(t), "map"),
-            pose: Pose::planar(x, y, th),
-        })
-        .collect();
-    let map = OccupancyGrid {
-        header: Header::new(Time::from_nanos(end), "map"),
-        info: MapMetaData {
-            map_load_time: Time::from_nanos(end),
-            resolution: grid.resolution as f32,
-            width: grid.width as u32,
-            height: grid.height as u32,
-            origin: Pose::planar(grid.origin.0, grid.origin.1, grid.origin.2),
-        },
-        data: grid.cells.to_vec(),
-    };
-    // The map first (at the start) so a viewer has it from the beginning, again at the end.
-    bag.write("/map", start, &map)?;
-    for p in &poses {
-        bag.write("/pose", p.header.stamp.to_nanos().max(0), p)?;
+    let start = trajectory.first().map_or(0, |p| p.0);
+    let mut out = ResultMcap::create(path, grid, start)?;
+    for &(t, pose) in trajectory {
+        out.pose(t, pose)?;
     }
-    bag.write(
-        "/trajectory",
-        end,
-        &PathMsg {
-            header: Header::new(Time::from_nanos(end), "map"),
-            poses,
-        },
-    )?;
-    if end != start {
-        bag.write("/map", end, &map)?;
-    }
-    bag.finish()?;
-    Ok(())
+    out.finish()
 }
 
 #[cfg(test)]
@@ -310,6 +452,27 @@ mod tests {
         assert_eq!(img.get_pixel(2, 1).0, [220, 30, 30]);
         assert_eq!(img.get_pixel(0, 1).0, [30, 160, 30]);
         assert_eq!(img.get_pixel(2, 0).0, [254, 254, 254]);
+    }
+
+    #[test]
+    fn a_long_path_is_thinned_evenly_and_keeps_its_ends() {
+        let mut path = ThinnedPath::default();
+        let n = 5 * MAX_PATH_POSES as i64 + 123;
+        for k in 0..n {
+            path.push(PoseStamped {
+                header: Header::new(Time::from_nanos(k), "map"),
+                pose: Pose::planar(k as f64, 0.0, 0.0),
+            });
+        }
+        let poses = path.finish();
+        assert!(poses.len() <= MAX_PATH_POSES + 1 && poses.len() > MAX_PATH_POSES / 2);
+        let x: Vec<i64> = poses.iter().map(|p| p.pose.position.x as i64).collect();
+        assert_eq!((x[0], *x.last().unwrap()), (0, n - 1));
+        let step = x[1] - x[0];
+        assert!(
+            x[..x.len() - 1].windows(2).all(|w| w[1] - w[0] == step),
+            "{step}"
+        );
     }
 
     #[test]

@@ -85,6 +85,7 @@ pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<(
         max_scans: args.max_scans,
         stamps: args.stamps,
         progress: !quiet,
+        keep_gpe: false,
     };
     let result = run(input, &settings)?;
     for w in &result.warnings {

@@ -13,6 +13,7 @@ pub mod input;
 pub mod output;
 pub mod resources;
 pub mod run;
+pub mod spool;
 
 pub use config::{MapConfig, Profile};
 pub use input::{

@@ -1,6 +1,7 @@
 //! What `cloi map` writes, besides the map pictures of [`crate::io::map_out`]:
 //!
-//! * [`write_tum`], a planar trajectory in TUM format with exact nanosecond stamps;
+//! * [`write_tum`] and [`TumWriter`], a planar trajectory in TUM format with exact nanosecond
+//!   stamps;
 //! * [`MapReport`], the run's `report.json`;
 //! * [`compose_global_grid`], the global occupancy grid from submaps at their (optimized)
 //!   poses, ready for [`crate::io::map_out::write_map_server`] and
@@ -12,7 +13,7 @@
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
-use std::io::IsTerminal;
+use std::io::{IsTerminal, Write as _};
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
@@ -28,26 +29,33 @@ use crate::io::map_out::GridRef;
 // ---------------------------------------------------------------------------------------
 // Trajectories
 
-/// The TUM text of a planar trajectory: `t x y z qx qy qz qw` per line, `t` in seconds with
-/// the nanosecond stamp written exactly (9 decimals), `z = 0`, the heading as a rotation
-/// about z.
+/// The header line of a TUM file.
+const TUM_HEADER: &str = "# timestamp tx ty tz qx qy qz qw\n";
+
+/// Appends one TUM line: `t x y z qx qy qz qw`, `t` in seconds with the nanosecond stamp
+/// written exactly (9 decimals), `z = 0`, the heading as a rotation about z.
+fn tum_line(s: &mut String, t_ns: i64, p: &Se2) {
+    let sign = if t_ns < 0 { "-" } else { "" };
+    let abs = t_ns.unsigned_abs();
+    let half = 0.5 * p.theta;
+    let _ = writeln!(
+        s,
+        "{sign}{}.{:09} {:.9} {:.9} 0.000000000 0.000000000 0.000000000 {:.9} {:.9}",
+        abs / 1_000_000_000,
+        abs % 1_000_000_000,
+        p.x,
+        p.y,
+        half.sin(),
+        half.cos()
+    );
+}
+
+/// The TUM text of a planar trajectory (see [`TumWriter`] for the format).
 pub fn tum_text(poses: &[(i64, Se2)]) -> String {
     let mut s = String::with_capacity(poses.len() * 110 + 40);
-    s.push_str("# timestamp tx ty tz qx qy qz qw\n");
+    s.push_str(TUM_HEADER);
     for (t_ns, p) in poses {
-        let sign = if *t_ns < 0 { "-" } else { "" };
-        let abs = t_ns.unsigned_abs();
-        let half = 0.5 * p.theta;
-        let _ = writeln!(
-            s,
-            "{sign}{}.{:09} {:.9} {:.9} 0.000000000 0.000000000 0.000000000 {:.9} {:.9}",
-            abs / 1_000_000_000,
-            abs % 1_000_000_000,
-            p.x,
-            p.y,
-            half.sin(),
-            half.cos()
-        );
+        tum_line(&mut s, *t_ns, p);
     }
     s
 }
@@ -59,6 +67,51 @@ pub fn tum_text(poses: &[(i64, Se2)]) -> String {
 /// Any IO error.
 pub fn write_tum(path: &Path, poses: &[(i64, Se2)]) -> Result<()> {
     atomic::write_file(path, tum_text(poses).as_bytes())
+}
+
+/// A TUM file written a pose at a time (a trajectory of any length, never held whole), which
+/// appears at its path only on [`TumWriter::commit`]. Lines as [`tum_text`]'s: `t x y z qx qy
+/// qz qw`, `t` in seconds with the nanosecond stamp written exactly, `z = 0`, the heading as
+/// a rotation about z.
+#[derive(Debug)]
+pub struct TumWriter {
+    file: atomic::AtomicFile,
+    line: String,
+}
+
+impl TumWriter {
+    /// Starts `path`.
+    ///
+    /// # Errors
+    /// The folder cannot be written.
+    pub fn create(path: &Path) -> Result<Self> {
+        let mut file = atomic::AtomicFile::create(path)?;
+        file.write_all(TUM_HEADER.as_bytes())?;
+        Ok(TumWriter {
+            file,
+            line: String::with_capacity(128),
+        })
+    }
+
+    /// Appends the pose `p` at `t_ns`.
+    ///
+    /// # Errors
+    /// A write error.
+    pub fn push(&mut self, t_ns: i64, p: &Se2) -> Result<()> {
+        self.line.clear();
+        tum_line(&mut self.line, t_ns, p);
+        self.file
+            .write_all(self.line.as_bytes())
+            .with_context(|| format!("writing {}", self.file.target().display()))
+    }
+
+    /// Flushes the file and moves it to its path.
+    ///
+    /// # Errors
+    /// An IO error.
+    pub fn commit(self) -> Result<()> {
+        self.file.commit()
+    }
 }
 
 // ---------------------------------------------------------------------------------------

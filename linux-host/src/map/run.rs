@@ -33,12 +33,13 @@ use serde_json::json;
 use super::config::{MapConfig, Profile};
 use super::input::{ImageEvent, InputStats, InputStream, SensorEvent};
 use super::output::{
-    compose_global_grid, peak_heap_bytes, peak_rss_bytes, write_tum, MapProgress, MapReport,
-    SubmapView,
+    compose_global_grid, peak_heap_bytes, peak_rss_bytes, MapProgress, MapReport, SubmapView,
+    TumWriter,
 };
 use super::resources::HeapResources;
+use super::spool::{Latency, ScanRecord, ScanSpool};
 use crate::graph_io::{write_g2o, FileEdge, GraphFile};
-use crate::io::map_out::{write_map_png, write_map_server, write_result_mcap, TimedPose2};
+use crate::io::map_out::{write_map_server, write_result_mcap, ResultMcap, TrajectoryPicture};
 
 /// Settings of one `cloi map` run.
 #[derive(Debug, Clone)]
@@ -61,6 +62,9 @@ pub struct MapSettings {
     pub stamps: StampPolicy,
     /// Show a progress bar (when stderr is a terminal).
     pub progress: bool,
+    /// Also return every real-time pose in [`MapRun::gpe`], bit-exact (for comparisons with
+    /// another build; held in memory, so it grows with the run).
+    pub keep_gpe: bool,
 }
 
 /// What `cloi map` does with a time stamp that is not after the previous one of its stream.
@@ -77,11 +81,10 @@ pub enum StampPolicy {
 /// What a run produced, besides the files.
 #[derive(Debug, Clone)]
 pub struct MapRun {
-    /// The report written to `report.json`.
+    /// The report written to `report.json` (the trajectories are in `trajectory.tum` and
+    /// `gpe.tum`, written as they are computed and never held whole).
     pub report: MapReport,
-    /// The final pose of every accepted scan.
-    pub trajectory: Vec<(i64, Se2)>,
-    /// The real-time pose of every accepted scan.
+    /// With [`MapSettings::keep_gpe`]: the real-time pose of every accepted scan.
     pub gpe: Vec<(i64, Se2)>,
     /// The mapper's counters.
     pub stats: MapperStats,
@@ -89,22 +92,18 @@ pub struct MapRun {
     pub warnings: Vec<String>,
 }
 
-/// One accepted scan: its time, reference keyframe, front-end motion since it, and outputs.
-struct ScanRecord {
-    stamp: i64,
-    reference: u32,
-    rel: Se2,
-    gpe: Se2,
-    frontend: Se2,
-}
-
 /// State of the real-time loop shared by both schedules.
 struct Driver<'s> {
-    records: Vec<ScanRecord>,
-    /// Front-end pose of every keyframe by serial (to place scans whose keyframe was pruned).
-    keyframe_frontend: Vec<Se2>,
+    /// The accepted scans, on disk until the end of the run.
+    records: ScanSpool,
+    /// The first error of the spool (a full disk), reported when the run ends.
+    spool_error: Option<anyhow::Error>,
+    /// The previous accepted scan's real-time and front-end poses.
+    previous: Option<(Se2, Se2)>,
+    /// Largest step of the real-time pose beyond the front-end's step, metres.
+    gpe_max_jump: f64,
     /// Wall time of the real-time part per scan (front-end, GPE, keyframe, loop search), µs.
-    scan_us: Vec<f64>,
+    scan_us: Latency,
     first_stamp: Option<i64>,
     last_stamp: i64,
     rejected: u64,
@@ -179,7 +178,7 @@ impl Driver<'_> {
                     }
                 }
             };
-            self.scan_us.push(t0.elapsed().as_secs_f64() * 1e6);
+            self.scan_us.add(t0.elapsed().as_secs_f64() * 1e6);
             match p.result {
                 Ok(out) => self.accept(mapper, &out, p.stamp),
                 Err(_) => self.rejected += 1,
@@ -215,22 +214,25 @@ impl Driver<'_> {
             .node_of(out.reference_serial)
             .and_then(|i| mapper.nodes().get(i))
             .map_or(Se2::IDENTITY, |m| m.frontend);
-        if out.keyframe {
-            let s = out.reference_serial as usize;
-            if self.keyframe_frontend.len() <= s {
-                self.keyframe_frontend.resize(s + 1, Se2::IDENTITY);
-            }
-            self.keyframe_frontend[s] = out.frontend;
-        }
         self.first_stamp.get_or_insert(stamp);
         self.last_stamp = self.last_stamp.max(stamp);
-        self.records.push(ScanRecord {
+        if let Some((gpe, frontend)) = self.previous {
+            let g = gpe.between(&out.pose);
+            let o = frontend.between(&out.frontend);
+            self.gpe_max_jump = self.gpe_max_jump.max((g.x - o.x).hypot(g.y - o.y));
+        }
+        self.previous = Some((out.pose, out.frontend));
+        let record = ScanRecord {
             stamp,
             reference: out.reference_serial,
+            reference_frontend: reference,
             rel: reference.between(&out.frontend),
             gpe: out.pose,
             frontend: out.frontend,
-        });
+        };
+        if let Err(e) = self.records.push(&record) {
+            self.spool_error.get_or_insert(e);
+        }
     }
 }
 
@@ -261,10 +263,11 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
 struct Finished {
     stamps_repaired: u64,
     sync: SyncStats,
-    scan_us: Vec<f64>,
-    records: Vec<ScanRecord>,
-    keyframe_frontend: Vec<Se2>,
-    keyframe_poses: Vec<(u32, Se2)>,
+    scan_us: Latency,
+    records: ScanSpool,
+    gpe_max_jump: f64,
+    /// `(serial, global pose, front-end pose)` of every keyframe in the final graph.
+    keyframe_poses: Vec<(u32, Se2, Se2)>,
     stats: MapperStats,
     nodes: usize,
     edges: usize,
@@ -292,9 +295,11 @@ fn drive(
     // The scans waiting for odometry (about 35 kB: on the heap, not the stack).
     let mut held = Box::new(ScanSlots::new());
     let mut driver = Driver {
-        records: Vec::new(),
-        keyframe_frontend: Vec::new(),
-        scan_us: Vec::new(),
+        records: ScanSpool::new()?,
+        spool_error: None,
+        previous: None,
+        gpe_max_jump: 0.0,
+        scan_us: Latency::new(),
         first_stamp: None,
         last_stamp: 0,
         rejected: 0,
@@ -473,12 +478,15 @@ fn drive(
             }
         }
     }
+    if let Some(e) = driver.spool_error.take() {
+        return Err(e);
+    }
     Ok(Finished {
         keyframe_poses: mapper
             .nodes()
             .iter()
             .zip(g.nodes())
-            .map(|(m, n)| (m.serial, n.pose))
+            .map(|(m, n)| (m.serial, n.pose, m.frontend))
             .collect(),
         stats: mapper.stats(),
         nodes: g.node_count(),
@@ -492,7 +500,7 @@ fn drive(
             .collect(),
         grid: mapper.config().grid,
         records: driver.records,
-        keyframe_frontend: driver.keyframe_frontend,
+        gpe_max_jump: driver.gpe_max_jump,
         scan_us: driver.scan_us,
         stamps_repaired: driver.feeder.stamps_repaired,
         sync: driver.feeder.sync_stats(),
@@ -530,14 +538,18 @@ fn finish(
     }
     // A scan hangs off its reference keyframe; when pruning removed that keyframe, off the
     // nearest kept one, through the front-end motion between the two.
-    let poses: std::collections::BTreeMap<u32, Se2> = f.keyframe_poses.iter().copied().collect();
+    let poses: std::collections::BTreeMap<u32, (Se2, Se2)> = f
+        .keyframe_poses
+        .iter()
+        .map(|&(serial, global, frontend)| (serial, (global, frontend)))
+        .collect();
     let place = |r: &ScanRecord| -> Option<Se2> {
-        if let Some(p) = poses.get(&r.reference) {
+        if let Some((p, _)) = poses.get(&r.reference) {
             return Some(p.compose(&r.rel));
         }
         let before = poses.range(..r.reference).next_back();
         let after = poses.range(r.reference..).next();
-        let (&k, g) = match (before, after) {
+        let (_, (g, fk)) = match (before, after) {
             (Some(b), Some(a)) => {
                 if r.reference - b.0 <= a.0 - r.reference {
                     b
@@ -549,22 +561,17 @@ fn finish(
             (None, Some(a)) => a,
             (None, None) => return None,
         };
-        let fk = f.keyframe_frontend.get(k as usize)?;
-        let fs = f.keyframe_frontend.get(r.reference as usize)?;
-        Some(g.compose(&fk.between(fs)).compose(&r.rel))
+        Some(
+            g.compose(&fk.between(&r.reference_frontend))
+                .compose(&r.rel),
+        )
     };
-    let trajectory: Vec<(i64, Se2)> = f
-        .records
-        .iter()
-        .filter_map(|r| Some((r.stamp, place(r)?)))
-        .collect();
-    let gpe: Vec<(i64, Se2)> = f.records.iter().map(|r| (r.stamp, r.gpe)).collect();
     // Every file goes into a staging folder first and the set replaces the previous run's
-    // together, report.json last (see `OutputSet`).
+    // together, report.json last (see `OutputSet`). The scans are read back from the spool once
+    // and each pose goes straight into the files, so no output grows the process with the
+    // length of the run.
     let set = crate::io::atomic::OutputSet::begin(&settings.out)?;
     let out = set.folder();
-    write_tum(&out.join("trajectory.tum"), &trajectory)?;
-    write_tum(&out.join("gpe.tum"), &gpe)?;
     crate::io::atomic::write_file(&out.join("graph.g2o"), f.g2o.as_bytes())?;
     let views: Vec<SubmapView<'_>> = f
         .submaps
@@ -578,25 +585,46 @@ fn finish(
         .collect();
     let grid = compose_global_grid(&views)?;
     write_map_server(out, "map", &grid.as_grid_ref())?;
-    let xy: Vec<(f64, f64)> = trajectory.iter().map(|(_, p)| (p.x, p.y)).collect();
-    write_map_png(&out.join("map.png"), &grid.as_grid_ref(), &xy)?;
-    let timed: Vec<TimedPose2> = trajectory
-        .iter()
-        .map(|(t, p)| (*t, (p.x, p.y, p.theta)))
-        .collect();
-    write_result_mcap(&out.join("result.mcap"), &grid.as_grid_ref(), &timed)?;
-
-    // Largest step of the real-time pose beyond the front-end's step.
-    let mut jump: f64 = 0.0;
-    for w in f.records.windows(2) {
-        let g = w[0].gpe.between(&w[1].gpe);
-        let o = w[0].frontend.between(&w[1].frontend);
-        jump = jump.max((g.x - o.x).hypot(g.y - o.y));
+    let accepted = f.records.len();
+    let mut trajectory = TumWriter::create(&out.join("trajectory.tum"))?;
+    let mut gpe = TumWriter::create(&out.join("gpe.tum"))?;
+    let mut picture = TrajectoryPicture::new(grid.as_grid_ref())?;
+    let mut result: Option<ResultMcap> = None;
+    let mut kept = Vec::new();
+    for r in f.records.into_records()? {
+        let r = r?;
+        gpe.push(r.stamp, &r.gpe)?;
+        if settings.keep_gpe {
+            kept.push((r.stamp, r.gpe));
+        }
+        let Some(p) = place(&r) else {
+            continue;
+        };
+        trajectory.push(r.stamp, &p)?;
+        picture.push(p.x, p.y);
+        let mcap = match &mut result {
+            Some(m) => m,
+            None => result.insert(ResultMcap::create(
+                &out.join("result.mcap"),
+                &grid.as_grid_ref(),
+                r.stamp,
+            )?),
+        };
+        mcap.pose(r.stamp, (p.x, p.y, p.theta))?;
     }
+    trajectory.commit()?;
+    gpe.commit()?;
+    picture.write_png(&out.join("map.png"))?;
+    match result {
+        Some(m) => m.finish()?,
+        None => write_result_mcap(&out.join("result.mcap"), &grid.as_grid_ref(), &[])?,
+    }
+    let jump = f.gpe_max_jump;
+
     let data_seconds = (f.last_stamp - f.first_stamp.unwrap_or(f.last_stamp)) as f64 * 1e-9;
     let s = f.stats;
     let mut report = MapReport {
-        scans: f.records.len() as u64 + f.rejected,
+        scans: accepted + f.rejected,
         scans_rejected: f.rejected,
         keyframes: s.keyframes as u64,
         nodes: f.nodes as u64,
@@ -607,7 +635,7 @@ fn finish(
         peak_heap_bytes: peak_heap_bytes(),
         peak_rss_bytes: peak_rss_bytes(),
         gpe_max_jump_m: jump,
-        gpe_rate_hz: gpe.len() as f64 / wall_seconds.max(1e-9),
+        gpe_rate_hz: accepted as f64 / wall_seconds.max(1e-9),
         extra: Default::default(),
     };
     report.add_input_stats(input_stats);
@@ -669,27 +697,22 @@ fn finish(
     }
     let mut warnings = sync_warnings(&sync);
     warnings.extend(camera_warnings(&f.cameras, f.images_refused));
-    let mut us = f.scan_us.clone();
-    us.sort_by(f64::total_cmp);
-    let pct = |q: f64| {
-        us.get(((us.len() as f64 - 1.0) * q).round() as usize)
-            .copied()
-    };
+    let us = &f.scan_us;
     report.extra.insert(
         "realtime_us_per_scan".into(),
         json!({
-            "median": pct(0.5),
-            "p99": pct(0.99),
-            "max": us.last(),
-            "note": "wall time of push_scan (front-end, GPE, keyframe, loop search) on the host",
+            "median": us.quantile(0.5),
+            "p99": us.quantile(0.99),
+            "max": us.max(),
+            "note": "wall time of push_scan (front-end, GPE, keyframe, loop search) on the host; \
+                     median and p99 to 1 %",
         }),
     );
     report.write(&out.join("report.json"))?;
     set.commit("report.json")?;
     Ok(MapRun {
         report,
-        trajectory,
-        gpe,
+        gpe: kept,
         stats: s,
         warnings,
     })
