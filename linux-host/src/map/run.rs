@@ -253,6 +253,9 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
         .mapper(cfg)
         .map_err(|e| anyhow!("profile {:?}: {e}", settings.profile))?;
     let run = drive(mapper, input, settings, &progress)?;
+    // The outputs are composed from the copies `drive` made: the profile's resources, the
+    // largest part of the process, go before the global grid and the picture are built.
+    drop(res);
     progress.finish();
     let wall_seconds = wall.elapsed().as_secs_f64();
     let input_stats = stats_handle.lock().map(|s| s.clone()).unwrap_or_default();
