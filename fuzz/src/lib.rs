@@ -37,3 +37,36 @@ pub fn with_cloilog_crcs(data: &[u8]) -> Vec<u8> {
     }
     out
 }
+
+/// `data` with the CRCs of a `.cloimap` recomputed: each section's over the bytes its table
+/// entry spans, then the header and table's own; the rest left as it is.
+pub fn with_mapfile_crcs(data: &[u8]) -> Vec<u8> {
+    use cloi_core::mapper::mapfile::{HEADER_LEN, MAX_SECTIONS, TABLE_ENTRY_LEN};
+    let mut out = data.to_vec();
+    let Some(&[lo, hi]) = data.get(10..12) else {
+        return out;
+    };
+    let sections = usize::from(u16::from_le_bytes([lo, hi])).min(MAX_SECTIONS);
+    let table_end = HEADER_LEN + sections * TABLE_ENTRY_LEN;
+    let mut at = table_end + 4;
+    for i in 0..sections {
+        let entry = HEADER_LEN + i * TABLE_ENTRY_LEN;
+        let Some(len) = out.get(entry + 4..entry + 8) else {
+            return out;
+        };
+        let len = u32::from_le_bytes([len[0], len[1], len[2], len[3]]) as usize;
+        let Some(body) = at.checked_add(len).and_then(|end| out.get(at..end)) else {
+            break;
+        };
+        let crc = cloi_core::sensor::log::crc32(body);
+        out[entry + 8..entry + 12].copy_from_slice(&crc.to_le_bytes());
+        at += len;
+    }
+    if let Some(head) = out.get(..table_end) {
+        let crc = cloi_core::sensor::log::crc32(head);
+        if let Some(field) = out.get_mut(table_end..table_end + 4) {
+            field.copy_from_slice(&crc.to_le_bytes());
+        }
+    }
+    out
+}

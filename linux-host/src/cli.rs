@@ -62,6 +62,9 @@ pub enum Command {
     /// Build a map from a CARMEN log, a ROS 2 bag, or (without input) the simulated home:
     /// map.pgm/yaml/png, trajectory.tum, gpe.tum, graph.g2o and report.json.
     Map(crate::map::command::MapArgs),
+    /// Check a map saved with `cloi map --save` and print what it holds (with `--out`, also
+    /// its map.pgm/yaml/png).
+    ShowMap(crate::map::show::ShowMapArgs),
     /// Simulate a robot in a world and write a ROS 2 bag with exact ground truth.
     Sim(crate::sim::command::SimArgs),
 }
@@ -80,5 +83,6 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Eval(cmd) => crate::eval::cli::run(&cmd, &crate::prune::batch_optimum, out),
         Command::Sim(args) => crate::sim::command::run(&args, out),
         Command::Map(args) => crate::map::command::run_command(&args, cli.quiet, out),
+        Command::ShowMap(args) => crate::map::show::run(&args, out),
     }
 }

@@ -581,3 +581,63 @@ fn a_bag_with_a_camera_has_its_images_tracked_and_the_lidar_map_unchanged() {
         assert!(a == b, "{f} differs with the images");
     }
 }
+
+#[test]
+fn a_saved_map_reads_back_whole_and_a_damaged_one_is_refused_with_its_reason() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (dir, file) = (tmp.path().join("run"), tmp.path().join("home.cloimap"));
+    let out = map_home("40", &dir)
+        .arg("--save")
+        .arg(&file)
+        .output()
+        .expect("cloi runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let shown = tmp.path().join("shown");
+    let show = |path: &Path, out: Option<&Path>| {
+        let mut c = Command::new(env!("CARGO_BIN_EXE_cloi"));
+        c.arg("show-map").arg(path);
+        if let Some(o) = out {
+            c.arg("--out").arg(o);
+        }
+        c.output().expect("cloi runs")
+    };
+    let o = show(&file, Some(&shown));
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).expect("JSON");
+    let r = report(&dir);
+    assert_eq!(summary["nodes"], r["nodes"]);
+    assert_eq!(summary["edges"], r["edges"]);
+    assert_eq!(summary["loop_edges"], r["loop_edges"]["in_graph"]);
+    assert_eq!(summary["submaps"], r["mapper"]["submaps"]);
+    assert_eq!(summary["grid"]["resolution_m"], 0.05);
+    // The grid composed from the file alone is the run's own map, byte for byte.
+    for f in ["map.pgm", "map.yaml"] {
+        assert_eq!(
+            std::fs::read(shown.join(f)).expect("shown"),
+            std::fs::read(dir.join(f)).expect("mapped"),
+            "{f}"
+        );
+    }
+    let bytes = std::fs::read(&file).expect("map file");
+    let damaged = tmp.path().join("damaged.cloimap");
+    let mut flipped = bytes.clone();
+    flipped[bytes.len() / 2] ^= 0x10;
+    let mut version = bytes.clone();
+    version[8] = 9;
+    for (what, b, reason) in [
+        ("truncated", &bytes[..bytes.len() - 100], "truncated"),
+        ("flipped", &flipped[..], "corrupt"),
+        ("version", &version[..], "version 9"),
+        ("empty", &[][..], "truncated"),
+    ] {
+        std::fs::write(&damaged, b).expect("write");
+        let o = show(&damaged, None);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(reason), "{what}: {err}");
+        assert!(!err.contains("panicked"), "{what}: {err}");
+    }
+}

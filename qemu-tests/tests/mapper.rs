@@ -114,6 +114,7 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         stamps: StampPolicy::FileOrder,
         progress: false,
         keep_gpe: true,
+        save_map: None,
     };
     let input = open_input(&log, &InputOptions::default()).unwrap();
     let host = run(input, &settings).expect("cloi map on x86-64");

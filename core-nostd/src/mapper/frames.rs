@@ -59,6 +59,11 @@ impl FrameState {
         }
     }
 
+    /// Serial the next frame node takes.
+    pub(crate) fn next_serial(&self) -> u32 {
+        self.next_serial
+    }
+
     /// Serial of the newest frame node (0 before the first).
     pub(crate) fn newest_serial(&self) -> u32 {
         self.next_serial.saturating_sub(1)

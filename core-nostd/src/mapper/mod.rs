@@ -41,6 +41,7 @@ mod far;
 pub mod feed;
 mod frames;
 mod loops;
+pub mod mapfile;
 mod pool;
 mod submaps;
 pub mod sync;
@@ -344,6 +345,20 @@ impl<'r> Mapper<'r> {
                 let cells = self.cells.get(i * per..(i + 1) * per)?;
                 Some((pose, cells))
             })
+    }
+
+    /// The map as it stands (graph, node metadata and submaps), to save with
+    /// [`mapfile::write_map`].
+    pub fn saved_map(&self) -> mapfile::MapRef<'_> {
+        mapfile::MapRef {
+            grid: self.cfg.grid,
+            nodes: self.graph.nodes(),
+            meta: self.nodes(),
+            edges: self.graph.edges(),
+            submaps: self.submaps,
+            cells: self.cells,
+            next_serial: self.st.frames.next_serial(),
+        }
     }
 
     /// Adds a wheel-odometry pose measured at `stamp` ns.

@@ -11,6 +11,7 @@
 //! * [`carmen`]: CARMEN logs (`.clf`, `.log`, `.gz`, `.bz2`).
 //! * [`convert`]: CARMEN records to ROS 2 messages (`cloi convert`).
 //! * [`tum`]: TUM and KITTI trajectories.
+//! * [`map_file`]: saved maps (`.cloimap`, the core's format) to and from files.
 //! * [`map_out`]: `map.pgm` + `map.yaml`, `map.png` with the trajectory, `result.mcap`.
 //! * [`cloilog`]: CARMEN logs to the firmware's compact binary sensor log.
 //! * [`graph_io`]: pose-graph files (g2o, TORO) and ground truth for them.
@@ -28,6 +29,7 @@ pub mod cloilog;
 pub mod convert;
 pub mod dataset;
 pub mod graph_io;
+pub mod map_file;
 pub mod map_out;
 pub mod ros2;
 pub mod tum;

@@ -28,6 +28,10 @@ pub struct MapArgs {
     /// value (`--set loop_closure.min_score=0.6 --set icp.huber=0.1`); repeatable.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub set: Vec<String>,
+    /// Also save the final map (pose graph and submaps) to this `.cloimap` file, for later
+    /// sessions; `cloi show-map` reads it back.
+    #[arg(long, value_name = "FILE")]
+    pub save: Option<PathBuf>,
     /// Output directory (default `out/<input stem>`).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -86,6 +90,7 @@ pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<(
         stamps: args.stamps,
         progress: !quiet,
         keep_gpe: false,
+        save_map: args.save.clone(),
     };
     let result = run(input, &settings)?;
     for w in &result.warnings {
@@ -96,6 +101,9 @@ pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<(
     }
     if !quiet {
         eprintln!("{}", summary(&result.report, &settings.out));
+        if let Some(path) = &settings.save_map {
+            eprintln!("saved the map to {}", path.display());
+        }
     }
     Ok(())
 }

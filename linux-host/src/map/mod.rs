@@ -4,6 +4,7 @@
 //! * [`config`], the TOML configuration with the `home`, `office` and `airport` presets;
 //! * [`run`], the driver of the core mapper and the writer of every output;
 //! * [`command`], the `cloi map` arguments;
+//! * [`show`], `cloi show-map`, a saved map's contents and pictures;
 //! * [`output`], trajectories, the run report, the global grid from submaps, peak heap and
 //!   the progress bar.
 
@@ -13,6 +14,7 @@ pub mod input;
 pub mod output;
 pub mod resources;
 pub mod run;
+pub mod show;
 pub mod spool;
 
 pub use config::{MapConfig, Profile};

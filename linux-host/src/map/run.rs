@@ -65,6 +65,8 @@ pub struct MapSettings {
     /// Also return every real-time pose in [`MapRun::gpe`], bit-exact (for comparisons with
     /// another build; held in memory, so it grows with the run).
     pub keep_gpe: bool,
+    /// Save the final map (`.cloimap`) here.
+    pub save_map: Option<PathBuf>,
 }
 
 /// What `cloi map` does with a time stamp that is not after the previous one of its stream.
@@ -483,6 +485,9 @@ fn drive(
     }
     if let Some(e) = driver.spool_error.take() {
         return Err(e);
+    }
+    if let Some(path) = &settings.save_map {
+        crate::io::map_file::save_map(&mapper.saved_map(), path)?;
     }
     Ok(Finished {
         keyframe_poses: mapper
