@@ -13,7 +13,7 @@
 use crate::backend::prune::PruneStorage;
 use crate::frontend::odometry::{OdometryConfig, OdometryFusion};
 use crate::frontend::scan::{ScanPoint, ScanPoints};
-use crate::frontend::{KeyframeConfig, PointMap};
+use crate::frontend::{GridParams, KeyframeConfig, PointMap};
 use crate::graph::{GraphStorage, PoseGraph};
 use crate::mapper::{
     Mapper, MapperConfig, MapperError, MapperParts, MapperState, NodeMeta, SubmapMeta,
@@ -180,6 +180,19 @@ impl<
             state: &mut self.state,
         }
         .start(config)
+    }
+
+    /// The graph, node metadata and submap storage, for reading a saved map into
+    /// ([`MapReader::read_into`](crate::mapper::mapfile::MapReader::read_into)) with the
+    /// submap grid `grid` (which must have `CELLS` cells).
+    pub fn map_storage(&mut self, grid: GridParams) -> crate::mapper::mapfile::MapStorage<'_> {
+        crate::mapper::mapfile::MapStorage {
+            grid,
+            graph: PoseGraph::new(&mut self.pose_graph.nodes, &mut self.pose_graph.edges),
+            meta: &mut self.node_meta,
+            submaps: &mut self.submap_meta,
+            cells: self.grid_cells.as_flattened_mut(),
+        }
     }
 }
 

@@ -35,10 +35,9 @@ fn read(data: &[u8]) {
     let mut meta = vec![NodeMeta::EMPTY; NODES];
     let mut submaps = vec![SubmapMeta::EMPTY; SLOTS];
     let mut cells = vec![0i8; SLOTS * s.grid.cells()];
-    let mut graph = PoseGraph::new(&mut nodes, &mut edges);
-    let _ = reader.read_into(MapStorage {
+    let _ = reader.read_into(&mut MapStorage {
         grid: s.grid,
-        graph: &mut graph,
+        graph: PoseGraph::new(&mut nodes, &mut edges),
         meta: &mut meta,
         submaps: &mut submaps,
         cells: &mut cells,

@@ -106,7 +106,21 @@ pub fn run_mapper(elf: &Path, log: &Path, out: &Path) -> Result<MapperRun> {
 /// # Errors
 /// As [`run_mapper`].
 pub fn run_mapper_timeout(elf: &Path, log: &Path, out: &Path, seconds: u32) -> Result<MapperRun> {
-    for p in [log, out] {
+    run_mapper_saving(elf, log, out, None, seconds)
+}
+
+/// [`run_mapper_timeout`], the firmware also writing its final map to `save` (`.cloimap`).
+///
+/// # Errors
+/// As [`run_mapper`].
+pub fn run_mapper_saving(
+    elf: &Path,
+    log: &Path,
+    out: &Path,
+    save: Option<&Path>,
+    seconds: u32,
+) -> Result<MapperRun> {
+    for p in [log, out].into_iter().chain(save) {
         let s = p.to_string_lossy();
         ensure!(
             !s.contains(' '),
@@ -114,11 +128,12 @@ pub fn run_mapper_timeout(elf: &Path, log: &Path, out: &Path, seconds: u32) -> R
         );
     }
     let _ = std::fs::remove_file(out);
-    let text = run_firmware_timeout(
-        elf,
-        &format!("log={} out={}", log.display(), out.display()),
-        seconds,
-    )?;
+    let mut args = format!("log={} out={}", log.display(), out.display());
+    if let Some(save) = save {
+        let _ = std::fs::remove_file(save);
+        args.push_str(&format!(" save={}", save.display()));
+    }
+    let text = run_firmware_timeout(elf, &args, seconds)?;
     let mut run = MapperRun {
         config: String::new(),
         scans: 0,
@@ -171,6 +186,30 @@ pub fn run_mapper_timeout(elf: &Path, log: &Path, out: &Path, seconds: u32) -> R
         .with_context(|| format!("reading the firmware's pose file {}", out.display()))?;
     (run.poses, run.keyframes) = parse_pose_file(&poses)?;
     Ok(run)
+}
+
+/// Runs the `cloi-mapper` firmware with `load=MAP`: it reads the saved map into the `home`
+/// profile's static pools. Returns the `map_*` fields it printed (`map_nodes`, `map_edges`,
+/// `map_submaps`, `map_next_serial`, `map_load_instructions`, `map_checksum`).
+///
+/// # Errors
+/// QEMU missing or failing, a path with a space, or a run that did not end with `status=ok`.
+pub fn load_map_firmware(elf: &Path, map: &Path) -> Result<BTreeMap<String, String>> {
+    let s = map.to_string_lossy();
+    ensure!(
+        !s.contains(' '),
+        "semihosting paths must not contain spaces: {s}"
+    );
+    let text = run_firmware_timeout(elf, &format!("load={s}"), 120)?;
+    if !text.lines().any(|l| field(l, "status") == Some("ok")) {
+        bail!("the map firmware did not end with status=ok:\n{text}");
+    }
+    Ok(text
+        .split_whitespace()
+        .filter_map(|kv| kv.split_once('='))
+        .filter(|(k, _)| k.starts_with("map_"))
+        .map(|(k, v)| (k.to_owned(), v.to_owned()))
+        .collect())
 }
 
 #[cfg(test)]

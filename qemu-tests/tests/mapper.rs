@@ -6,7 +6,9 @@
 //!
 //! Checks: the two configurations are identical; every scan's real-time pose (`gpe.tum`) and
 //! every keyframe's final pose (`graph.g2o` VERTEX lines) are bit-identical on both machines;
-//! the instruction percentiles per section and the stack are under the budgets below.
+//! the saved maps (`.cloimap`) are the same bytes, and the firmware reads the host's map into
+//! its static pools with the same contents; the instruction percentiles per section and the
+//! stack are under the budgets below.
 //!
 //! Equality: both sides run the same Rust code on IEEE-754 doubles and floats with `libm`
 //! (no std float functions in the core, no fused multiply-add on either target), so the
@@ -16,7 +18,7 @@ use cloi_core::mapper::MapperConfig;
 use cloi_host::map::config::{MapConfig, Profile};
 use cloi_host::map::run::{run, MapSettings, StampPolicy};
 use cloi_host::map::{open_input, InputOptions};
-use cloi_qemu_tests::mapper::run_mapper;
+use cloi_qemu_tests::mapper::{load_map_firmware, run_mapper_saving};
 use cloi_qemu_tests::stats::Percentiles;
 use cloi_qemu_tests::{build_firmware, firmware_elf, workspace_root};
 
@@ -85,7 +87,9 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
 
     build_firmware().expect("firmware builds");
     let elf = firmware_elf("cloi-mapper");
-    let fw = run_mapper(&elf, &log, &dir.join("poses.txt")).expect("mapper firmware run");
+    let fw_map = dir.join("firmware.cloimap");
+    let fw = run_mapper_saving(&elf, &log, &dir.join("poses.txt"), Some(&fw_map), 600)
+        .expect("mapper firmware run");
     std::fs::write(dir.join("firmware.log"), &fw.log).unwrap();
     println!("{}", fw.log);
 
@@ -114,7 +118,7 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         stamps: StampPolicy::FileOrder,
         progress: false,
         keep_gpe: true,
-        save_map: None,
+        save_map: Some(dir.join("host.cloimap")),
     };
     let input = open_input(&log, &InputOptions::default()).unwrap();
     let host = run(input, &settings).expect("cloi map on x86-64");
@@ -162,6 +166,32 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         }
     }
 
+    // The saved map: the same bytes from both machines, and the A9 reads the host's file into
+    // its static pools with the same contents.
+    let host_map = dir.join("host.cloimap");
+    assert_eq!(
+        std::fs::read(&fw_map).expect("firmware map"),
+        std::fs::read(&host_map).expect("host map"),
+        "the maps saved on x86-64 and on the Cortex-A9 differ"
+    );
+    let loaded = cloi_host::io::map_file::load_map(&host_map).expect("host reads its map");
+    let on_a9 = load_map_firmware(&elf, &host_map).expect("firmware loads the map");
+    println!("map on the A9: {on_a9:?}");
+    let s = loaded.summary;
+    for (key, want) in [
+        ("map_nodes", s.nodes),
+        ("map_edges", s.edges),
+        ("map_submaps", s.submaps),
+        ("map_next_serial", s.next_serial),
+    ] {
+        assert_eq!(on_a9[key], want.to_string(), "{key}");
+    }
+    assert_eq!(
+        on_a9["map_checksum"],
+        format!("{:016x}", map_checksum(&loaded))
+    );
+    assert_eq!(s.nodes as usize, vertices_in(&out));
+
     // Instruction budgets per section; the printed percentiles are those of the pose file.
     let accepted: Vec<u64> = fw.poses.iter().map(|p| p.push_scan).collect();
     assert_eq!(fw.sections["push_scan"], Percentiles::of(&accepted));
@@ -189,4 +219,40 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         last.y,
         last.theta
     );
+}
+
+/// FNV-1a (64 bits) of every node pose's bits and every stored submap's cells, as the
+/// firmware's `load=` computes it.
+fn map_checksum(map: &cloi_host::io::map_file::LoadedMap) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut eat = |bytes: &[u8]| {
+        for &b in bytes {
+            h = (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+        }
+    };
+    for n in &map.nodes {
+        for v in [n.pose.x, n.pose.y, n.pose.theta] {
+            eat(&v.to_bits().to_le_bytes());
+        }
+    }
+    let per = map.summary.grid.cells();
+    for (slot, m) in map.submaps.iter().enumerate() {
+        if m.in_use {
+            let cells: Vec<u8> = map.cells[slot * per..(slot + 1) * per]
+                .iter()
+                .map(|&c| c as u8)
+                .collect();
+            eat(&cells);
+        }
+    }
+    h
+}
+
+/// Keyframes in the host's `graph.g2o`.
+fn vertices_in(out: &std::path::Path) -> usize {
+    std::fs::read_to_string(out.join("graph.g2o"))
+        .expect("graph.g2o")
+        .lines()
+        .filter(|l| l.starts_with("VERTEX_SE2 "))
+        .count()
 }

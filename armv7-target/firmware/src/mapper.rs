@@ -31,6 +31,7 @@
 use core::fmt::Write as _;
 
 use cloi_core::frontend::BeamGeometry;
+use cloi_core::mapper::mapfile::{write_map, MapReader};
 use cloi_core::mapper::sync::SYNC_SLOTS;
 use cloi_core::mapper::{
     BackendStep, Feeder, Mapper, MapperConfig, Probe, Pushed, ScanInput, ScanSlots, Section,
@@ -42,7 +43,7 @@ use cloi_core::sensor::log::{
 use semihosting::fs::File;
 use semihosting::println;
 
-use crate::semihost_io::{c_path, ChunkedFile, OutBuffer, CHUNK};
+use crate::semihost_io::{c_path, ChunkedFile, MapFile, OutBuffer, CHUNK};
 use crate::statics::TakeOnce;
 use crate::stats::{quantile, MAX_SCANS};
 use crate::timer;
@@ -305,7 +306,7 @@ fn print_stat(
 }
 
 /// Runs the mapper over `log_path`, writing poses to `out_path`. Returns an error message.
-pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
+pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<(), &'static str> {
     let (Some(resources), Some(ranges), Some(read_buffer), Some(out)) = (
         RESOURCES.take(),
         RANGES.take(),
@@ -455,6 +456,14 @@ pub fn run(log_path: &str, out_path: &str) -> Result<(), &'static str> {
     out.flush_to(&mut out_file)
         .map_err(|_| "cannot write the output (SYS_WRITE)")?;
     drop(out_file);
+    if let Some(save) = save_path {
+        let save_c = c_path(save, &mut path).ok_or("map path too long")?;
+        let file = File::create(save_c).map_err(|_| "cannot create the map file (SYS_OPEN)")?;
+        let (written, instructions) =
+            measure(|| write_map(&mapper.saved_map(), &mut MapFile::new(file)));
+        let bytes = written.map_err(|_| "cannot write the map file (SYS_WRITE)")?;
+        println!("map_saved_bytes={bytes} map_save_instructions={instructions}");
+    }
 
     let s = mapper.stats();
     println!(
@@ -561,5 +570,69 @@ fn log_error_name(e: &LogError) -> &'static str {
         LogError::BadChecksum { .. } => "bad checksum",
         LogError::CountMismatch { .. } => "record count mismatch",
         LogError::BufferTooSmall { .. } => "buffer too small",
+    }
+}
+
+/// Reads the saved map at `map_path` into the `home` profile's static pools (no heap, as a
+/// session that starts from a saved map would) and prints what it holds, the instructions the
+/// read took and an FNV-1a checksum of every node pose's bits and every stored submap's cells
+/// (the host computes the same over its own read of the file).
+pub fn load(map_path: &str) -> Result<(), &'static str> {
+    let Some(resources) = RESOURCES.take() else {
+        return Err("resources taken twice");
+    };
+    let mut path = [0u8; 512];
+    let c = c_path(map_path, &mut path).ok_or("map path too long")?;
+    let file = File::open(c).map_err(|_| "cannot open the map file (SYS_OPEN)")?;
+    let mut input = MapFile::new(file);
+    let grid = MapperConfig::home().grid;
+    let mut storage = resources.map_storage(grid);
+    let (read, instructions) =
+        measure(|| MapReader::open(&mut input).and_then(|r| r.read_into(&mut storage)));
+    let summary = match read {
+        Ok(s) => s,
+        Err(e) => {
+            println!("map_error=\"{e}\"");
+            return Err("the map file was refused");
+        }
+    };
+    let mut hash = Fnv::new();
+    for n in storage.graph.nodes() {
+        for v in [n.pose.x, n.pose.y, n.pose.theta] {
+            hash.bytes(&v.to_bits().to_le_bytes());
+        }
+    }
+    let per = grid.cells();
+    for (slot, m) in storage.submaps.iter().enumerate() {
+        if m.in_use {
+            for &c in storage
+                .cells
+                .get(slot * per..(slot + 1) * per)
+                .unwrap_or_default()
+            {
+                hash.bytes(&[c as u8]);
+            }
+        }
+    }
+    println!(
+        "map_nodes={} map_edges={} map_submaps={} map_next_serial={} \
+         map_load_instructions={instructions} map_checksum={:016x}",
+        summary.nodes, summary.edges, summary.submaps, summary.next_serial, hash.0
+    );
+    Ok(())
+}
+
+/// FNV-1a, 64 bits.
+struct Fnv(u64);
+
+impl Fnv {
+    fn new() -> Self {
+        Fnv(0xcbf2_9ce4_8422_2325)
+    }
+
+    fn bytes(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0 ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+        }
     }
 }

@@ -1,6 +1,6 @@
 //! File input and output through ARM semihosting: a `.cloilog` read from the host in fixed
-//! chunks, text lines buffered before each write, and the NUL-terminated paths the
-//! semihosting calls take.
+//! chunks, text lines buffered before each write, a saved map (`.cloimap`) read and written as
+//! an `embedded-io` stream, and the NUL-terminated paths the semihosting calls take.
 
 use core::ffi::CStr;
 
@@ -62,4 +62,56 @@ pub(crate) fn c_path<'a>(text: &str, buf: &'a mut [u8; 512]) -> Option<&'a CStr>
     buf.get_mut(..bytes.len())?.copy_from_slice(bytes);
     *buf.get_mut(bytes.len())? = 0;
     CStr::from_bytes_until_nul(&buf[..=bytes.len()]).ok()
+}
+
+/// A semihosting file as an `embedded-io` stream: reads in [`CHUNK`]s, writes gathered in a
+/// buffer of the same size (the map writer's fields are a few bytes each, and every
+/// semihosting call traps to the host).
+pub(crate) struct MapFile {
+    file: File,
+    buffer: [u8; CHUNK],
+    len: usize,
+}
+
+impl MapFile {
+    pub(crate) fn new(file: File) -> Self {
+        Self {
+            file,
+            buffer: [0; CHUNK],
+            len: 0,
+        }
+    }
+}
+
+impl embedded_io::ErrorType for MapFile {
+    type Error = embedded_io::ErrorKind;
+}
+
+impl embedded_io::Read for MapFile {
+    fn read(&mut self, buf: &mut [u8]) -> Result<usize, Self::Error> {
+        let n = buf.len().min(CHUNK);
+        self.file
+            .read(&mut buf[..n])
+            .map_err(|_| embedded_io::ErrorKind::Other)
+    }
+}
+
+impl embedded_io::Write for MapFile {
+    fn write(&mut self, buf: &[u8]) -> Result<usize, Self::Error> {
+        if self.len == CHUNK {
+            self.flush()?;
+        }
+        let n = buf.len().min(CHUNK - self.len);
+        self.buffer[self.len..self.len + n].copy_from_slice(&buf[..n]);
+        self.len += n;
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> Result<(), Self::Error> {
+        self.file
+            .write_all(&self.buffer[..self.len])
+            .map_err(|_| embedded_io::ErrorKind::Other)?;
+        self.len = 0;
+        Ok(())
+    }
 }

@@ -121,11 +121,10 @@ pub fn load_map(path: &Path) -> Result<LoadedMap> {
     let mut meta = vec![NodeMeta::EMPTY; s.nodes as usize];
     let mut submaps = vec![SubmapMeta::EMPTY; s.submap_slots as usize];
     let mut cells = vec![0i8; s.submap_slots as usize * s.grid.cells()];
-    let mut graph = PoseGraph::new(&mut nodes, &mut edges);
     reader
-        .read_into(MapStorage {
+        .read_into(&mut MapStorage {
             grid: s.grid,
-            graph: &mut graph,
+            graph: PoseGraph::new(&mut nodes, &mut edges),
             meta: &mut meta,
             submaps: &mut submaps,
             cells: &mut cells,

@@ -1,10 +1,13 @@
 //! CLOi-Mapper firmware for a bare-metal Cortex-A9 (QEMU `vexpress-a9`): the mapper binary.
 //!
-//! Reads `log=PATH out=PATH` from the semihosting command line (`SYS_GET_CMDLINE`, i.e.
-//! QEMU's `-append`), runs the `home` mapper over the `.cloilog` at `log` (see
-//! `cloi_firmware::mapper`), writes the real-time and keyframe poses to `out`, prints the
+//! Reads `log=PATH out=PATH [save=MAP]` from the semihosting command line
+//! (`SYS_GET_CMDLINE`, i.e. QEMU's `-append`), runs the `home` mapper over the `.cloilog` at
+//! `log` (see `cloi_firmware::mapper`), writes the real-time and keyframe poses to `out` (and
+//! with `save`, the final map as a `.cloimap`), prints the
 //! instruction percentiles per section and the stack high-water mark, and exits through semihosting (status 0 on success). Paths are opened by
 //! QEMU on the host (relative to its working folder) and must not contain spaces.
+//! `load=MAP` instead reads a saved map into the profile's static pools and prints what it
+//! holds (`cloi_firmware::mapper::load`).
 #![no_std]
 #![no_main]
 
@@ -23,23 +26,34 @@ fn main() -> ! {
         println!("status=error message=\"no semihosting command line\"");
         process::exit(2);
     };
-    let (mut log, mut out) = (None, None);
+    let (mut log, mut out, mut save, mut load) = (None, None, None, None);
     // The first word is the kernel's file name.
     for arg in (&args).skip(1).flatten() {
         if let Some(v) = arg.strip_prefix("log=") {
             log = Some(v);
         } else if let Some(v) = arg.strip_prefix("out=") {
             out = Some(v);
+        } else if let Some(v) = arg.strip_prefix("save=") {
+            save = Some(v);
+        } else if let Some(v) = arg.strip_prefix("load=") {
+            load = Some(v);
         } else {
             println!("status=error message=\"unknown argument {arg}\"");
             process::exit(2);
         }
     }
-    let (Some(log), Some(out)) = (log, out) else {
-        println!("status=error message=\"usage: -append 'log=PATH out=PATH'\"");
-        process::exit(2);
+    let result = match (log, out, load) {
+        (Some(log), Some(out), None) => mapper::run(log, out, save),
+        (None, None, Some(map)) if save.is_none() => mapper::load(map),
+        _ => {
+            println!(
+                "status=error message=\"usage: -append 'log=PATH out=PATH [save=MAP]' or \
+                 -append 'load=MAP'\""
+            );
+            process::exit(2);
+        }
     };
-    if let Err(message) = mapper::run(log, out) {
+    if let Err(message) = result {
         println!("status=error message=\"{message}\"");
         process::exit(1);
     }

@@ -14,19 +14,21 @@ use crate::mapper::frames::{node_index, NodeMeta};
 use crate::mapper::submaps::SubmapMeta;
 use crate::mapper::NO_SUBMAP;
 
-/// Where [`MapReader::read_into`] puts a map: the storage of a mapper or of a map viewer.
+/// Where [`MapReader::read_into`] puts a map: the storage of a mapper
+/// ([`MapperResources::map_storage`](crate::profile::MapperResources::map_storage)) or of a
+/// map viewer.
 #[derive(Debug)]
-pub struct MapStorage<'a, 'g> {
+pub struct MapStorage<'g> {
     /// The submap grid the storage's cells are laid out for.
     pub grid: GridParams,
     /// The graph (cleared, then filled).
-    pub graph: &'a mut PoseGraph<'g>,
+    pub graph: PoseGraph<'g>,
     /// One entry per graph node.
-    pub meta: &'a mut [NodeMeta],
+    pub meta: &'g mut [NodeMeta],
     /// Submap slots (all reset; stored submaps return to their saved slots).
-    pub submaps: &'a mut [SubmapMeta],
+    pub submaps: &'g mut [SubmapMeta],
     /// Cells of every slot, `grid.cells()` each.
-    pub cells: &'a mut [i8],
+    pub cells: &'g mut [i8],
 }
 
 /// One table entry.
@@ -156,7 +158,7 @@ impl<'i, R: embedded_io::Read> MapReader<'i, R> {
     /// # Errors
     /// [`MapFileError::GridMismatch`], [`MapFileError::TooLarge`] before anything is read;
     /// then any fault of the sections (see [`MapReader::open`]).
-    pub fn read_into(mut self, storage: MapStorage<'_, '_>) -> Result<MapSummary, MapFileError> {
+    pub fn read_into(mut self, storage: &mut MapStorage<'_>) -> Result<MapSummary, MapFileError> {
         let s = self.summary;
         if s.grid != storage.grid {
             return Err(MapFileError::GridMismatch);
@@ -175,7 +177,12 @@ impl<'i, R: embedded_io::Read> MapReader<'i, R> {
         }
         storage.graph.clear();
         storage.submaps.fill(SubmapMeta::EMPTY);
-        let read = self.read_sections(storage.graph, storage.meta, storage.submaps, storage.cells);
+        let read = self.read_sections(
+            &mut storage.graph,
+            storage.meta,
+            storage.submaps,
+            storage.cells,
+        );
         if read.is_err() {
             storage.graph.clear();
             storage.submaps.fill(SubmapMeta::EMPTY);

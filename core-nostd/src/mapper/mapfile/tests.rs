@@ -169,21 +169,21 @@ impl Target {
     fn read(&mut self, bytes: &[u8]) -> Result<Owned, MapFileError> {
         let mut input = bytes;
         let reader = MapReader::open(&mut input)?;
-        let mut graph = PoseGraph::new(&mut self.nodes, &mut self.edges);
-        let s = reader.read_into(MapStorage {
+        let mut storage = MapStorage {
             grid: GRID,
-            graph: &mut graph,
+            graph: PoseGraph::new(&mut self.nodes, &mut self.edges),
             meta: &mut self.meta,
             submaps: &mut self.submaps,
             cells: &mut self.cells,
-        })?;
+        };
+        let s = reader.read_into(&mut storage)?;
         assert!(input.is_empty(), "the whole file is read");
         Ok(Owned {
-            nodes: graph.nodes().to_vec(),
-            edges: graph.edges().to_vec(),
-            meta: self.meta[..s.nodes as usize].to_vec(),
-            submaps: self.submaps.clone(),
-            cells: self.cells.clone(),
+            nodes: storage.graph.nodes().to_vec(),
+            edges: storage.graph.edges().to_vec(),
+            meta: storage.meta[..s.nodes as usize].to_vec(),
+            submaps: storage.submaps.to_vec(),
+            cells: storage.cells.to_vec(),
         })
     }
 }
@@ -314,16 +314,15 @@ fn storage_too_small_or_of_another_grid_is_refused_before_reading() {
         vec![PoseNode::new(Se2::IDENTITY); 16],
         Target::new(0, 32, 0).edges,
     );
-    let mut graph = PoseGraph::new(&mut nodes, &mut edges);
     let (mut meta, mut submaps, mut cells) = (
         vec![NodeMeta::EMPTY; 16],
         vec![SubmapMeta::EMPTY; SLOTS],
         vec![0; 4096],
     );
     let other = GridParams { side: 8, ..GRID };
-    let got = reader.read_into(MapStorage {
+    let got = reader.read_into(&mut MapStorage {
         grid: other,
-        graph: &mut graph,
+        graph: PoseGraph::new(&mut nodes, &mut edges),
         meta: &mut meta,
         submaps: &mut submaps,
         cells: &mut cells,
