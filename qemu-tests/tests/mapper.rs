@@ -18,7 +18,7 @@ use cloi_core::mapper::MapperConfig;
 use cloi_host::map::config::{MapConfig, Profile};
 use cloi_host::map::run::{run, MapSettings, StampPolicy};
 use cloi_host::map::{open_input, InputOptions};
-use cloi_qemu_tests::mapper::{load_map_firmware, run_mapper_saving};
+use cloi_qemu_tests::mapper::{load_map_firmware, run_mapper, run_mapper_saving};
 use cloi_qemu_tests::stats::Percentiles;
 use cloi_qemu_tests::{build_firmware, firmware_elf, workspace_root};
 
@@ -255,4 +255,54 @@ fn vertices_in(out: &std::path::Path) -> usize {
         .lines()
         .filter(|l| l.starts_with("VERTEX_SE2 "))
         .count()
+}
+
+/// Most instructions of one back-end step that advances the optimizer, on the whole log
+/// (issue 14: bounded by work, not by iterations). The firmware records each scan's largest
+/// optimizer step of the up to `backend.steps_per_frame` it runs: max 4,626,670 measured,
+/// median 3,352,120, over 1,048 scans.
+const OPTIMIZER_STEP_MAX: u64 = 5_000_000;
+/// Most instructions of any back-end step on the whole log (each scan's largest: max 6,156,400
+/// measured, median 3,159,800, 6,173 scans). Above the optimizer's: the far search's
+/// refinement of a found match (windowed correlative match and ICP against the submap,
+/// `mapper/far/accept.rs`) still runs whole, and a branch-and-bound turn of 1,100 evaluations
+/// can reach 6.3 M (evaluations cost 1,300 to 5,700 instructions).
+const BACKEND_STEP_MAX: u64 = 7_500_000;
+
+/// The whole of intel.clf (13,631 scans, 2,720 frame nodes at the end; 2 to 4 minutes under
+/// QEMU on the shared box): no back-end step exceeds its ceiling above. The first 1,000 scans
+/// above never exercise this: their graph has 164 nodes and every solve ends within one
+/// step's budget. Here the solves span many steps: the gate's odometry chain and support test,
+/// the minimum-degree ordering of up to 2,720 nodes, the factorization, the substitutions and
+/// the innovation tests each stop where the budget runs out, and the far search spreads its
+/// branch and bound and its pyramid builds over the turns the optimizer leaves idle.
+#[test]
+fn intel_whole_log_backend_chunks_stay_bounded() {
+    let Some(clf) = cloi_host::dataset::shared_file("carmen/intel.clf") else {
+        return;
+    };
+    let dir = workspace_root().join("target").join("qemu-mapper-whole");
+    std::fs::create_dir_all(&dir).unwrap();
+    let dir = dir.canonicalize().unwrap();
+    let log = dir.join("intel.cloilog");
+    let report = cloi_host::io::cloilog::carmen_to_cloilog(&clf, &log, false, None, None).unwrap();
+    assert!(report.scans > 13_000, "{} scans", report.scans);
+
+    build_firmware().expect("firmware builds");
+    let elf = firmware_elf("cloi-mapper");
+    let fw = run_mapper(&elf, &log, &dir.join("poses.txt")).expect("mapper firmware run");
+    std::fs::write(dir.join("firmware.log"), &fw.log).unwrap();
+    assert!(fw.counters["keyframes"] > 2_000, "{}", fw.log);
+    for (name, max) in [
+        ("backend_optimizer", OPTIMIZER_STEP_MAX),
+        ("backend_working", BACKEND_STEP_MAX),
+    ] {
+        let p = fw.sections[name];
+        println!(
+            "{name}: n {} min {} median {} p99 {} max {}",
+            p.n, p.min, p.median, p.p99, p.max
+        );
+        assert!(p.n > 1_000, "{name}: {} scans", p.n);
+        assert!(p.max <= max, "{name}: max {} > {max}", p.max);
+    }
 }

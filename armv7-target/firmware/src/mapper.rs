@@ -110,11 +110,14 @@ pub struct ScanCost {
     pub stamp: i64,
     /// Instructions of `push_scan` (front-end, GPE, keyframe, loop search).
     pub push_scan: u64,
-    /// Instructions of the back-end step after the scan.
+    /// Instructions of the largest back-end step after the scan (the frame's share is up to
+    /// `backend.steps_per_frame` steps, as `Mapper::step_backend_frame` runs them).
     pub backend: u64,
-    /// The back-end step had nothing to do.
+    /// Instructions of the largest of those steps that advanced the optimizer.
+    pub backend_optimizer: u64,
+    /// The first back-end step had nothing to do.
     pub backend_idle: bool,
-    /// The back-end step advanced the optimizer (rather than the far loop search that takes
+    /// A back-end step advanced the optimizer (rather than the far loop search that takes
     /// the turns it leaves idle).
     pub backend_optimized: bool,
     /// Instructions of each part of `push_scan`, indexed by [`section_index`]: front-end,
@@ -240,18 +243,29 @@ fn release(state: &mut State, cost: &mut EventCost, at_end: bool) {
 /// The cost of one pushed scan (`push_scan` instructions `n`), with the back-end step after
 /// it.
 fn after_push(mapper: &mut Mapper<'_>, p: Pushed, n: u64, probe: &SectionTimer) -> ScanCost {
-    let steps = mapper.stats().backend_steps;
-    let (step, backend) = measure(|| mapper.step_backend(BACKEND_ITERATIONS_PER_SCAN));
-    ScanCost {
+    let mut cost = ScanCost {
         output: p.result.ok(),
         stamp: p.stamp,
         push_scan: n,
-        backend,
-        backend_idle: step == BackendStep::Idle,
-        backend_optimized: mapper.stats().backend_steps != steps,
         sections: probe.counts,
         loop_search: probe.loop_search,
+        ..ScanCost::default()
+    };
+    // The steps of `Mapper::step_backend_frame`, each measured on its own.
+    for i in 0..mapper.config().backend.steps_per_frame.max(1) {
+        let steps = mapper.stats().backend_steps;
+        let (step, instructions) = measure(|| mapper.step_backend(BACKEND_ITERATIONS_PER_SCAN));
+        cost.backend = cost.backend.max(instructions);
+        if mapper.stats().backend_steps != steps {
+            cost.backend_optimized = true;
+            cost.backend_optimizer = cost.backend_optimizer.max(instructions);
+        }
+        if step == BackendStep::Idle {
+            cost.backend_idle = i == 0;
+            break;
+        }
     }
+    cost
 }
 
 static RESOURCES: TakeOnce<HomeResources> = TakeOnce::new(HomeResources::new());
@@ -263,6 +277,7 @@ static READ_BUFFER: TakeOnce<[u8; MIN_READER_BUFFER + CHUNK]> =
 /// Per scan: instructions of `push_scan`, of the back-end step after it, and flags.
 static SCAN_COUNTS: TakeOnce<[u32; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
 static BACKEND_COUNTS: TakeOnce<[u32; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
+static OPTIMIZER_COUNTS: TakeOnce<[u32; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
 static FLAGS: TakeOnce<[u8; MAX_SCANS]> = TakeOnce::new([0; MAX_SCANS]);
 /// Per scan: instructions of each part of `push_scan` (see [`EventCost::sections`]).
 static SECTION_COUNTS: TakeOnce<[[u32; 4]; MAX_SCANS]> = TakeOnce::new([[0; 4]; MAX_SCANS]);
@@ -321,6 +336,9 @@ pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<()
         FLAGS.take(),
         SCRATCH.take(),
     ) else {
+        return Err("mapper started twice");
+    };
+    let Some(optimizer_counts) = OPTIMIZER_COUNTS.take() else {
         return Err("mapper started twice");
     };
     let (Some(section_counts), Some(held)) = (SECTION_COUNTS.take(), SCAN_SLOTS.take()) else {
@@ -382,12 +400,14 @@ pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<()
         };
         sensors_total += cost.sensors;
         for cost in cost.scans() {
-            if let (Some(s), Some(b), Some(f), Some(parts)) = (
+            if let (Some(s), Some(b), Some(o), Some(f), Some(parts)) = (
                 scan_counts.get_mut(scans),
                 backend_counts.get_mut(scans),
+                optimizer_counts.get_mut(scans),
                 flags.get_mut(scans),
                 section_counts.get_mut(scans),
             ) {
+                *o = u32::try_from(cost.backend_optimizer).unwrap_or(u32::MAX);
                 *s = u32::try_from(cost.push_scan).unwrap_or(u32::MAX);
                 for (p, &c) in parts.iter_mut().zip(&cost.sections) {
                     *p = u32::try_from(c).unwrap_or(u32::MAX);
@@ -530,6 +550,7 @@ pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<()
         |f| f & FLAG_LOOP_SEARCH != 0,
         scratch,
     );
+    // Per scan, its largest back-end step (of up to `backend.steps_per_frame`).
     print_stat("backend_step", bc.iter().copied(), fl, |_| true, scratch);
     print_stat(
         "backend_working",
@@ -541,7 +562,7 @@ pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<()
     // The optimizer's chunks alone (the far loop search takes the other working steps).
     print_stat(
         "backend_optimizer",
-        bc.iter().copied(),
+        optimizer_counts[..kept].iter().copied(),
         fl,
         |f| f & FLAG_BACKEND_OPTIMIZED != 0,
         scratch,

@@ -5,7 +5,7 @@
 //! frame nodes, or on request. It is a sequence of solves of at most the caller's iterations
 //! each, up to a total per optimization; every solve is a [`ChunkedSolve`], and one call of
 //! [`BackendSchedule::step`] advances it by at most [`ScheduleParams::work_budget`] work units
-//! (module `solver::resumable`: about 60 Cortex-A9 instructions each), so the back-end's share
+//! (module `solver::resumable`: about 100 Cortex-A9 instructions each), so the back-end's share
 //! of a frame is bounded by work, not by iterations. Frame nodes and loop edges that the
 //! mapper adds while a solve runs join the next solve (the running one carries the new nodes
 //! along rigidly). A finished optimization is reported so the caller can take its result as

@@ -162,16 +162,21 @@ pub struct BackendConfig {
     /// Chi2 threshold of the odometry-chain gate that warm-starts max-mixture loops (see
     /// `solver::gate`); 0 disables it.
     pub gate_chi2: f64,
-    /// Most work units of one back-end step (`solver::work`, about 60 Cortex-A9 instructions
+    /// Most work units of one back-end step (`solver::work`, about 100 Cortex-A9 instructions
     /// each): a solve spans as many steps as it needs. 0: no limit (each step runs whole
     /// solves of the step's iterations).
     pub work_budget: u64,
+    /// Back-end steps after each frame in an interleaved schedule
+    /// ([`Mapper::step_backend_frame`](super::Mapper::step_backend_frame): the firmware and
+    /// `cloi map --deterministic`), so the back-end's share of a frame is several bounded
+    /// steps rather than one larger one; a threaded host runs steps back to back instead.
+    pub steps_per_frame: u32,
 }
 
 impl BackendConfig {
     /// The default work budget of one back-end step: about 4 M Cortex-A9 instructions, so a
     /// step stays within 5 M with the parts of a solve that run whole.
-    pub const WORK_BUDGET: u64 = 60_000;
+    pub const WORK_BUDGET: u64 = 32_000;
 }
 
 impl Default for BackendConfig {
@@ -184,6 +189,7 @@ impl Default for BackendConfig {
             prune_keep_recent: 30,
             gate_chi2: 16.27,
             work_budget: BackendConfig::WORK_BUDGET,
+            steps_per_frame: 3,
         }
     }
 }

@@ -556,6 +556,20 @@ impl<'r> Mapper<'r> {
         self.st.backend.loop_added();
     }
 
+    /// The back-end's share of one frame in an interleaved schedule: up to
+    /// `config.backend.steps_per_frame` steps of [`Mapper::step_backend`], fewer when it has
+    /// nothing left to do; the last step that worked (or `Idle`).
+    pub fn step_backend_frame(&mut self, iterations: u32) -> BackendStep {
+        let mut last = BackendStep::Idle;
+        for _ in 0..self.cfg.backend.steps_per_frame.max(1) {
+            match self.step_backend(iterations) {
+                BackendStep::Idle => break,
+                step => last = step,
+            }
+        }
+        last
+    }
+
     /// Runs one back-end step: at most `config.backend.work_budget` work units of the due
     /// optimization, whose solves run at most `iterations` Gauss-Newton iterations each; a
     /// finished optimization chooses the GPE's anchor.

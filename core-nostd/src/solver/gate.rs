@@ -15,17 +15,17 @@
 //! residual until that settles; then the free max-mixture solve, where every edge picks its most
 //! likely component, except that a loop the warm start did not use is held on its null
 //! component until it is consistent with the map ([`unit_variance`],
-//! [`admit_by_innovation`]).
+//! [`super::admission::admit_by_innovation`]).
 //!
 //! The chain's covariance in the world frame is kept per node: `S_b = J_a S_a J_a^T +
 //! J_z S_z J_z^T`, so the relative covariance of nodes `a < b` is recovered in O(1) as
 //! `R_a^T (S_b - J S_a J^T) R_a` with `J` the Jacobian of `P_a (+) T` with respect to `P_a`.
 
-use super::cholesky::{chol_inverse, mul_v, solve_in_place};
+use super::cholesky::{chol_inverse, mul_v};
 use super::linearize::{edge_residual, info_block, quad};
+use super::resumable::work;
 use super::workspace::{Block, SolverBuffers};
 use crate::geom::{wrap_angle, Se2};
-use crate::graph::residual::relative_residual;
 use crate::graph::{EdgeKind, PoseEdge, PoseNode, RobustKernel};
 
 const NONE: u32 = u32::MAX;
@@ -58,7 +58,7 @@ fn mul(a: &Block, b: &Block) -> Block {
     o
 }
 
-fn transpose(a: &Block) -> Block {
+pub(super) fn transpose(a: &Block) -> Block {
     [a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8]]
 }
 
@@ -67,7 +67,7 @@ fn sandwich(j: &Block, m: &Block) -> Block {
     mul(&mul(j, m), &transpose(j))
 }
 
-fn add(a: &Block, b: &Block) -> Block {
+pub(super) fn add(a: &Block, b: &Block) -> Block {
     let mut o = *a;
     for (x, y) in o.iter_mut().zip(b) {
         *x += y;
@@ -76,7 +76,7 @@ fn add(a: &Block, b: &Block) -> Block {
 }
 
 /// Inverse of a symmetric positive definite block, from its Cholesky factor.
-fn spd_inverse(m: &Block) -> Option<Block> {
+pub(super) fn spd_inverse(m: &Block) -> Option<Block> {
     let li = chol_inverse(m)?;
     Some(mul(&transpose(&li), &li))
 }
@@ -124,7 +124,37 @@ pub(crate) fn gate_loops(
     ws: &mut SolverBuffers<'_>,
     chi2: f64,
 ) -> usize {
-    let [odo, segment, ..] = &mut ws.scratch;
+    gate_index(n, edges, ws);
+    let mut chain = Chain::START;
+    gate_chain(&mut chain, n, edges, ws, u64::MAX);
+    gate_test(n, edges, ws, chi2, 0, u64::MAX).2
+}
+
+/// The odometry chain of [`gate_chain`] between calls: the segment, pose and world-frame
+/// covariance reached.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct Chain {
+    /// Next node.
+    pub(crate) next: usize,
+    seg: u32,
+    pose: Se2,
+    cov: Block,
+}
+
+impl Chain {
+    /// Before the first node.
+    pub(crate) const START: Chain = Chain {
+        next: 0,
+        seg: 0,
+        pose: Se2::IDENTITY,
+        cov: [0.0; 9],
+    };
+}
+
+/// The first part of [`gate_loops`]: each node's odometry edge to its successor (`O(nodes +
+/// edges)`).
+pub(crate) fn gate_index(n: usize, edges: &[PoseEdge], ws: &mut SolverBuffers<'_>) {
+    let [odo, ..] = &mut ws.scratch;
     for k in 0..n {
         odo[k] = NONE;
     }
@@ -134,11 +164,28 @@ pub(crate) fn gate_loops(
             odo[a.min(b)] = idx as u32;
         }
     }
-    // Chain poses (in `saved`) and world-frame covariances (in `work`), per segment.
-    let mut seg = 0u32;
-    let mut pose = Se2::IDENTITY;
-    let mut cov: Block = [0.0; 9];
-    for k in 0..n {
+}
+
+/// Chains the odometry over the next nodes of `chain` (poses in `saved`, world-frame
+/// covariances in `work`, per segment) until at least `budget` work units were spent (at
+/// least one node); returns the units.
+pub(crate) fn gate_chain(
+    chain: &mut Chain,
+    n: usize,
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    budget: u64,
+) -> u64 {
+    let [odo, segment, ..] = &mut ws.scratch;
+    let Chain {
+        next,
+        mut seg,
+        mut pose,
+        mut cov,
+    } = *chain;
+    let mut spent = 0u64;
+    let mut k = next;
+    while k < n && spent < budget {
         ws.saved[k] = pose;
         ws.work[k] = cov;
         segment[k] = seg;
@@ -163,15 +210,44 @@ pub(crate) fn gate_loops(
                 cov = [0.0; 9];
             }
         }
+        spent += work::GATE_NODE;
+        k += 1;
     }
+    *chain = Chain {
+        next: k,
+        seg,
+        pose,
+        cov,
+    };
+    spent
+}
+
+/// The gate's test of edges `from..` until at least `budget` work units were spent (at least
+/// one edge): returns the next edge, the units and the max-mixture loops that passed.
+pub(crate) fn gate_test(
+    n: usize,
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    chi2: f64,
+    from: usize,
+    budget: u64,
+) -> (usize, u64, usize) {
     let mut passed = 0;
+    let mut spent = 0u64;
     let [_, segment, ..] = &ws.scratch;
-    for (e, flag) in edges.iter().zip(ws.edge_flags.iter_mut()) {
+    let mut k = from;
+    while k < edges.len() && spent < budget {
+        let (Some(e), Some(flag)) = (edges.get(k), ws.edge_flags.get_mut(k)) else {
+            break;
+        };
+        k += 1;
         let mm = matches!(e.robust, RobustKernel::MaxMixture { .. }) && e.kind == EdgeKind::Loop;
         if !mm {
             *flag = (*flag & 1) | GATE_PASSED;
+            spent += work::GATE_EDGE;
             continue;
         }
+        spent += work::GATE_LOOP;
         *flag &= 1;
         let (i, j) = (e.from.0 as usize, e.to.0 as usize);
         if i >= n || j >= n || segment[i] != segment[j] {
@@ -192,7 +268,7 @@ pub(crate) fn gate_loops(
             }
         }
     }
-    passed
+    (k, spent, passed)
 }
 
 /// Measurement of a relative edge from its earlier node to its later one: `(a, b, z, cov_z)`
@@ -277,20 +353,39 @@ pub(crate) fn support_loops(
     ws: &mut SolverBuffers<'_>,
     chi2: f64,
 ) -> usize {
-    ws.key.valid = false;
-    let gated = |e: &PoseEdge, f: u8| {
-        f & GATE_PASSED != 0
-            && e.kind == EdgeKind::Loop
-            && matches!(e.robust, RobustKernel::MaxMixture { .. })
-    };
-    if edges.len() >= LINK_NONE as usize {
-        return edges
-            .iter()
-            .zip(ws.edge_flags.iter())
-            .filter(|(e, &f)| gated(e, f))
-            .count();
+    if let Some(kept) = support_begin(n, edges, ws) {
+        return kept;
     }
-    let [_, segment, head, ..] = &mut ws.scratch;
+    support_pairs(n, edges, ws, chi2, 0, u64::MAX);
+    support_end(edges, ws)
+}
+
+/// A gated max-mixture loop.
+fn gated(e: &PoseEdge, f: u8) -> bool {
+    f & GATE_PASSED != 0
+        && e.kind == EdgeKind::Loop
+        && matches!(e.robust, RobustKernel::MaxMixture { .. })
+}
+
+/// The first part of [`support_loops`]: the gated loops in buckets by their lower end
+/// (`O(nodes + edges)`). `Some` (the gated loops) when there are too many edges to link, and
+/// the test is skipped.
+pub(crate) fn support_begin(
+    n: usize,
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+) -> Option<usize> {
+    ws.key.valid = false;
+    if edges.len() >= LINK_NONE as usize {
+        return Some(
+            edges
+                .iter()
+                .zip(ws.edge_flags.iter())
+                .filter(|(e, &f)| gated(e, f))
+                .count(),
+        );
+    }
+    let [_, _, head, ..] = &mut ws.scratch;
     for h in head.iter_mut().take(n) {
         *h = LINK_NONE;
     }
@@ -302,11 +397,30 @@ pub(crate) fn support_loops(
             head[a] = k as u32;
         }
     }
+    None
+}
+
+/// The pair tests of [`support_loops`] for the loops whose lower end is `from..` until at
+/// least `budget` work units were spent (at least one node): returns the next node and the
+/// units.
+pub(crate) fn support_pairs(
+    n: usize,
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    chi2: f64,
+    from: usize,
+    budget: u64,
+) -> (usize, u64) {
+    let [_, segment, head, ..] = &mut ws.scratch;
     let count_of = |slot: u32| slot >> LINK_BITS;
     let link_of = |slot: u32| slot & LINK_NONE;
-    for a1 in 0..n {
+    let mut spent = 0u64;
+    let mut a1 = from;
+    while a1 < n && spent < budget {
+        spent += work::GATE_EDGE;
         let mut x = head[a1];
         while x != LINK_NONE {
+            spent += work::GATE_LOOP;
             let ex = &edges[x as usize];
             let Some((_, b1, z1, c1)) = oriented(ex) else {
                 x = link_of(ws.edge_slot[x as usize]);
@@ -316,7 +430,6 @@ pub(crate) fn support_loops(
                 if segment[a2] != segment[a1] {
                     break;
                 }
-                // Within the same bucket, only the loops after `x`.
                 let mut y = if a2 == a1 {
                     link_of(ws.edge_slot[x as usize])
                 } else {
@@ -325,8 +438,10 @@ pub(crate) fn support_loops(
                 while y != LINK_NONE {
                     let next = link_of(ws.edge_slot[y as usize]);
                     let ey = &edges[y as usize];
+                    spent += work::GATE_LOOP;
                     if let Some((_, b2, z2, c2)) = oriented(ey) {
                         if b1.abs_diff(b2) <= SUPPORT_WINDOW && segment[b1] == segment[b2] {
+                            spent += work::GATE_PAIR;
                             let (ta, ca) = chain_between(ws.saved, ws.work, a2, a1);
                             let (tb, cb) = chain_between(ws.saved, ws.work, b1, b2);
                             let mut p = Se2::IDENTITY;
@@ -350,7 +465,15 @@ pub(crate) fn support_loops(
             }
             x = link_of(ws.edge_slot[x as usize]);
         }
+        a1 += 1;
     }
+    (a1, spent)
+}
+
+/// The end of [`support_loops`]: gated loops with too little support lose [`GATE_PASSED`];
+/// returns the gated loops that keep their place.
+pub(crate) fn support_end(edges: &[PoseEdge], ws: &mut SolverBuffers<'_>) -> usize {
+    let count_of = |slot: u32| slot >> LINK_BITS;
     let mut kept = 0;
     for (k, e) in edges.iter().enumerate() {
         let f = ws.edge_flags[k];
@@ -394,107 +517,4 @@ pub(crate) fn unit_variance(nodes: &[PoseNode], edges: &[PoseEdge], ws: &SolverB
     } else {
         1.0
     }
-}
-
-/// The innovation test of the max-mixture loops that the admission gate
-/// ([`super::linearize::Warm::Admit`]) holds back: loops without [`GATE_PASSED`] whose chi2
-/// at the current estimate is above `chi2` although their max-mixture would pick a component
-/// of useful weight. Such a loop is left out of the system, so the factor in the workspace
-/// (from the last iteration) gives the covariance of its predicted residual, `J H^-1 J^T`
-/// (three solves); the loop is admitted (marked [`GATE_PASSED`], free to follow its
-/// max-mixture from then on) when `e^T (J H^-1 J^T + Omega^-1)^-1 e <= chi2`. A loop that
-/// closes a stretch which nothing else constrains passes; a false loop between well-known
-/// places does not. Returns the number admitted.
-pub(crate) fn admit_by_innovation(
-    nodes: &[PoseNode],
-    edges: &[PoseEdge],
-    ws: &mut SolverBuffers<'_>,
-    chi2: f64,
-) -> usize {
-    admit_range(nodes, edges, ws, chi2, 0, usize::MAX).1
-}
-
-/// [`admit_by_innovation`] over the edges from `from` on, stopping before the loop that would
-/// be the `max_tests + 1`-th tested (each test is three solves with the factor); returns the
-/// next edge, the loops admitted and the loops tested. The tests are independent of each other (a loop's
-/// admission changes only its own flag, not the factor), so split runs admit the same loops.
-pub(crate) fn admit_range(
-    nodes: &[PoseNode],
-    edges: &[PoseEdge],
-    ws: &mut SolverBuffers<'_>,
-    chi2: f64,
-    from: usize,
-    max_tests: usize,
-) -> (usize, usize, usize) {
-    let vars = ws.key.vars;
-    let mut admitted = 0;
-    let mut tested = 0;
-    for (k, e) in edges.iter().enumerate().skip(from) {
-        let f = ws.edge_flags[k];
-        if f & GATE_PASSED != 0
-            || e.kind != EdgeKind::Loop
-            || !matches!(e.robust, RobustKernel::MaxMixture { .. })
-        {
-            continue;
-        }
-        let (i, j) = (e.from.0 as usize, e.to.0 as usize);
-        let (Some(ni), Some(nj)) = (nodes.get(i), nodes.get(j)) else {
-            continue;
-        };
-        let (ci, si) = (libm::cos(ni.pose.theta), libm::sin(ni.pose.theta));
-        let [cz, sz] = ws.edge_trig[k];
-        let (r, [ca, sa, gx, gy]) =
-            relative_residual(&ni.pose, ci, si, &nj.pose, &e.measurement, cz, sz);
-        let info = info_block(e);
-        let c = quad(&info, &r);
-        if c <= chi2 || e.robust.weigh(c).0 < super::INACTIVE_SCALE {
-            continue;
-        }
-        let Some(cov_z) = spd_inverse(&info) else {
-            continue;
-        };
-        if tested >= max_tests {
-            return (k, admitted, tested);
-        }
-        tested += 1;
-        let jj: Block = [ca, sa, 0.0, -sa, ca, 0.0, 0.0, 0.0, 1.0];
-        let ji: Block = [-ca, -sa, gx, sa, -ca, gy, 0.0, 0.0, -1.0];
-        let (pi, pj) = (ws.node_var[i], ws.node_var[j]);
-        let mut pred: Block = [0.0; 9];
-        for col in 0..3 {
-            for v in ws.rhs.iter_mut().take(vars) {
-                *v = [0.0; 3];
-            }
-            // Column `col` of J^T, by variable position.
-            for (p, jac) in [(pi, &ji), (pj, &jj)] {
-                if let Some(v) = ws.rhs.get_mut(p as usize).filter(|_| (p as usize) < vars) {
-                    for (d, x) in v.iter_mut().enumerate() {
-                        *x += jac[3 * col + d];
-                    }
-                }
-            }
-            solve_in_place(vars, ws.col_end, ws.rows, ws.values, ws.diag, ws.rhs);
-            for (p, jac) in [(pi, &ji), (pj, &jj)] {
-                if let Some(x) = ws.rhs.get(p as usize).filter(|_| (p as usize) < vars) {
-                    let y = mul_v(jac, x);
-                    for row in 0..3 {
-                        pred[3 * row + col] += y[row];
-                    }
-                }
-            }
-        }
-        let mut total = add(&pred, &transpose(&pred));
-        for (v, cz) in total.iter_mut().zip(cov_z) {
-            *v = 0.5 * *v + cz;
-        }
-        let m = chol_inverse(&total).map(|li| {
-            let y = mul_v(&li, &r);
-            y[0] * y[0] + y[1] * y[1] + y[2] * y[2]
-        });
-        if m.is_some_and(|m| m <= chi2) {
-            ws.edge_flags[k] = f | GATE_PASSED;
-            admitted += 1;
-        }
-    }
-    (edges.len(), admitted, tested)
 }

@@ -43,6 +43,7 @@
 //! same Gauss-Newton solve in bounded chunks of work, for the back-end's steps), `ordering`,
 //! `cholesky`, `linearize`, `gate`, `marginals` and `workspace`.
 
+mod admission;
 mod cholesky;
 mod gate;
 mod iterate;
@@ -226,7 +227,7 @@ pub fn solve(
                 let Warm::Admit(limit) = free else {
                     break;
                 };
-                if gate::admit_by_innovation(nodes, edges, ws, limit) == 0 {
+                if admission::admit_by_innovation(nodes, edges, ws, limit) == 0 {
                     break;
                 }
                 r = gauss_newton(
@@ -359,6 +360,25 @@ pub(super) fn refresh_structure(
     warm: Warm,
     report: &mut SolveReport,
 ) -> Result<bool, SolveError> {
+    let (changed, due) = refresh_flags(nodes, edges, ws, gauge_first, limit, warm);
+    if let Some(fp) = due {
+        ordering::analyze(nodes, edges, gauge_first, ws)?;
+        analysis_done(nodes.len(), edges.len(), fp, ws, report);
+    }
+    Ok(changed)
+}
+
+/// The first part of [`refresh_structure`]: sets the edges' active flags and returns whether
+/// the set changed and, when the structure must be analysed again, the new analysis
+/// fingerprint (the cached analysis is then marked invalid).
+pub(super) fn refresh_flags(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    ws: &mut SolverBuffers<'_>,
+    gauge_first: bool,
+    limit: usize,
+    warm: Warm,
+) -> (bool, Option<u64>) {
     let mut changed = false;
     for ((flag, e), t) in ws.edge_flags.iter_mut().zip(edges).zip(ws.edge_trig.iter()) {
         let mut active = linearize::within(e, limit);
@@ -376,19 +396,29 @@ pub(super) fn refresh_structure(
     }
     let fp = ordering::fingerprint(nodes, edges, ws.edge_flags, gauge_first);
     let key = *ws.key;
-    if !(key.valid && key.nodes == nodes.len() && key.edges == edges.len() && key.fingerprint == fp)
-    {
-        ws.key.valid = false;
-        ordering::analyze(nodes, edges, gauge_first, ws)?;
-        ws.key.nodes = nodes.len();
-        ws.key.edges = edges.len();
-        ws.key.fingerprint = fp;
-        ws.key.valid = true;
-        report.analyzed = true;
-        report.variables = ws.key.vars;
-        report.factor_blocks = ws.key.nnz;
+    if key.valid && key.nodes == nodes.len() && key.edges == edges.len() && key.fingerprint == fp {
+        return (changed, None);
     }
-    Ok(changed)
+    ws.key.valid = false;
+    (changed, Some(fp))
+}
+
+/// The end of a structural analysis of `nodes` nodes and `edges` edges with fingerprint `fp`:
+/// the cached analysis is valid again.
+pub(super) fn analysis_done(
+    nodes: usize,
+    edges: usize,
+    fp: u64,
+    ws: &mut SolverBuffers<'_>,
+    report: &mut SolveReport,
+) {
+    ws.key.nodes = nodes;
+    ws.key.edges = edges;
+    ws.key.fingerprint = fp;
+    ws.key.valid = true;
+    report.analyzed = true;
+    report.variables = ws.key.vars;
+    report.factor_blocks = ws.key.nnz;
 }
 
 /// The lengths of the scratch arrays.

@@ -57,6 +57,53 @@ pub(crate) fn analyze(
     gauge_first: bool,
     b: &mut SolverBuffers<'_>,
 ) -> Result<(), SolveError> {
+    let mut state = analyze_begin(nodes, edges, gauge_first, b)?;
+    eliminate(&mut state, b, u64::MAX)?;
+    analyze_end(nodes.len(), edges, &state, b)
+}
+
+/// The state of a minimum-degree elimination between calls of [`eliminate`]: everything else
+/// lives in the workspace, so an analysis may stop after any pivot and resume later with the
+/// same result.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Elimination {
+    /// Free variables.
+    nv: usize,
+    /// Next pivot.
+    k: usize,
+    min_deg: usize,
+    /// Factor blocks so far.
+    nnz: usize,
+    stamp: u32,
+    /// Head of the adjacency pool's free list.
+    free: u32,
+    /// Adjacency pool entries ever used.
+    used: usize,
+}
+
+impl Elimination {
+    /// True when every variable is eliminated.
+    pub(crate) fn done(&self) -> bool {
+        self.k >= self.nv
+    }
+
+    /// Factor blocks so far.
+    pub(crate) fn blocks(&self) -> usize {
+        self.nnz
+    }
+}
+
+/// The first part of [`analyze`]: numbers the free nodes and builds the elimination graph
+/// and its degree buckets (`O(nodes + edges)`).
+///
+/// # Errors
+/// As [`analyze`].
+pub(crate) fn analyze_begin(
+    nodes: &[PoseNode],
+    edges: &[PoseEdge],
+    gauge_first: bool,
+    b: &mut SolverBuffers<'_>,
+) -> Result<Elimination, SolveError> {
     let n_nodes = nodes.len();
     if n_nodes > b.node_var.len() {
         return Err(SolveError::Capacity {
@@ -148,10 +195,52 @@ pub(crate) fn analyze(
         bucket_push(bhead, bnext, bprev, v as u32, d);
         min_deg = min_deg.min(d);
     }
+    Ok(Elimination {
+        nv,
+        k: 0,
+        min_deg,
+        nnz: 0,
+        stamp,
+        free,
+        used,
+    })
+}
 
+/// Eliminates the next pivots of the minimum-degree order until at least `budget` adjacency
+/// entries were visited (at least one pivot per call; `u64::MAX`: to the end); returns the
+/// entries visited.
+///
+/// # Errors
+/// As [`analyze`].
+pub(crate) fn eliminate(
+    s: &mut Elimination,
+    b: &mut SolverBuffers<'_>,
+    budget: u64,
+) -> Result<u64, SolveError> {
     const ELIMINATED: u32 = u32::MAX;
-    let mut nnz = 0usize;
-    for k in 0..nv {
+    let [adj_head, degree, bnext, bprev, bhead, mark] = &mut b.scratch;
+    let adj_node = &mut *b.adj_node;
+    let adj_next = &mut *b.adj_next;
+    let pool = adj_node.len().min(adj_next.len());
+    let factor_full = SolveError::Capacity {
+        what: "factor blocks",
+        capacity: b.rows.len(),
+    };
+    let Elimination {
+        nv,
+        k: from,
+        mut min_deg,
+        mut nnz,
+        mut stamp,
+        mut free,
+        mut used,
+    } = *s;
+    let mut visited = 0u64;
+    let mut k = from;
+    while k < nv {
+        if visited >= budget {
+            break;
+        }
         while min_deg < nv && bhead[min_deg] == NONE {
             min_deg += 1;
         }
@@ -178,6 +267,7 @@ pub(crate) fn analyze(
             adj_next[e as usize] = free;
             free = e;
             e = nxt;
+            visited += 1;
         }
         adj_head[v as usize] = NONE;
         b.col_end[k] = nnz as u32;
@@ -202,9 +292,11 @@ pub(crate) fn analyze(
                     prev = e;
                 }
                 e = nxt;
+                visited += 1;
             }
             for q in start..nnz {
                 let c = b.rows[q];
+                visited += 1;
                 if mark[c as usize] == stamp {
                     continue;
                 }
@@ -231,8 +323,39 @@ pub(crate) fn analyze(
                 min_deg = min_deg.min(deg as usize);
             }
         }
+        // The pivot itself (bucket search and bookkeeping) counts as a few entries.
+        visited += 4;
+        k += 1;
     }
+    *s = Elimination {
+        nv,
+        k,
+        min_deg,
+        nnz,
+        stamp,
+        free,
+        used,
+    };
+    Ok(visited)
+}
 
+/// The last part of [`analyze`] after every pivot was eliminated: the factor's rows as sorted
+/// positions, the node <-> position maps and the edge slots (`O(factor blocks + edges)`).
+///
+/// # Errors
+/// As [`analyze`].
+pub(crate) fn analyze_end(
+    n_nodes: usize,
+    edges: &[PoseEdge],
+    s: &Elimination,
+    b: &mut SolverBuffers<'_>,
+) -> Result<(), SolveError> {
+    let Elimination { nv, nnz, .. } = *s;
+    let factor_full = SolveError::Capacity {
+        what: "factor blocks",
+        capacity: b.rows.len(),
+    };
+    let [.., mark] = &mut b.scratch;
     // Positions: var -> position (in `mark`), then rows as positions, sorted per column.
     for k in 0..nv {
         mark[b.var_node[k] as usize] = k as u32;

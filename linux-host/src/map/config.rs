@@ -147,7 +147,7 @@ pub struct BackendSection {
     pub iterations: u32,
     /// Cell edge of the graph pruning (one node kept per cell and heading), metres.
     pub prune_cell_size: f64,
-    /// Most work units of one back-end step (about 60 Cortex-A9 instructions each; a solve
+    /// Most work units of one back-end step (about 100 Cortex-A9 instructions each; a solve
     /// spans as many steps as it needs); 0: no limit, each step runs whole solves.
     pub work_budget: u64,
 }

@@ -327,7 +327,7 @@ fn drive(
         let iterations = settings.backend_iterations_per_scan;
         let mut step_backend = |m: &mut Mapper<'_>, t_ns: i64| {
             if delay_ns <= 0 {
-                m.step_backend(iterations);
+                m.step_backend_frame(iterations);
             } else if t_ns >= next_backend {
                 next_backend = t_ns + delay_ns;
                 while m.step_backend(iterations) == BackendStep::Working {}

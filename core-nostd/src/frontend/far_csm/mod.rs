@@ -286,7 +286,8 @@ impl FarSearch {
 
     /// Continues the search in `submap` (with its `pyramid`) for about `budget` more candidate
     /// evaluations (a top-level cell's subtree is finished once begun, so a call may overrun
-    /// by one subtree). The submap and pyramid must be the same on every call of one search.
+    /// by one subtree). Placing the scan's points at a new rotation costs about as much as an
+    /// evaluation (one pass over the points) and counts as one. The submap and pyramid must be the same on every call of one search.
     ///
     /// # Errors
     /// [`CsmError::InvalidConfig`] when no search is active or the base level is not below the
@@ -348,7 +349,8 @@ impl FarSearch {
         };
         let mut cells: heapless::Vec<[i32; 2], FAR_POINTS> = heapless::Vec::new();
         let mut cells_angle = u32::MAX;
-        while self.next_angle < angles && bnb.evaluated < budget as u64 {
+        let mut rotations = 0u64;
+        while self.next_angle < angles && bnb.evaluated + rotations < budget as u64 {
             let a = self.next_angle;
             if cells_angle != a {
                 let theta = local.theta + angle_offset(a) as f64 * step;
@@ -369,6 +371,7 @@ impl FarSearch {
                     let _ = cells.push([clamp(g[0]), clamp(g[1])]);
                 }
                 cells_angle = a;
+                rotations += 1;
             }
             let t = self.next_top as i32;
             let dx = -window + (t % per_row) * span;

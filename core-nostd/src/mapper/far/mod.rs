@@ -16,7 +16,9 @@
 //! level of the pyramid over the submap and the headings within the uncertainty, as
 //! Cartographer's global constraint search does), then refined like a windowed match. The
 //! search runs in the back-end's turn, at most [`STEP_BUDGET`] candidate evaluations per
-//! back-end step and only while no optimization runs, so it never delays a frame.
+//! back-end step and only while no optimization runs, so it never delays a frame. Building a
+//! submap's search pyramid and refining a found match (the tests of module `accept`) each
+//! take a back-end turn of their own.
 //!
 //! **Accepting a far match.** A far match is a hypothesis, not yet a constraint: an aliased
 //! place (a repeated office, a plain corridor, a new room like an old one) can match as well
@@ -57,8 +59,9 @@ use accept::SUPPORT_EDGES;
 
 /// Submaps searched for one keyframe before the next keyframe takes over.
 pub const PER_KEYFRAME: usize = 8;
-/// Candidate evaluations of the far search per back-end step.
-pub const STEP_BUDGET: u32 = 4000;
+/// Candidate evaluations of the far search per back-end step (1,300 to 5,700 Cortex-A9
+/// instructions each with the scan's 160 points, as measured on intel.clf).
+pub const STEP_BUDGET: u32 = 1100;
 /// Pyramid level the far search scores at (4 cells per step at level 2).
 const BASE_LEVEL: u8 = 2;
 /// A far match is ambiguous, and not taken, when a pose distinct from it (1 m or 0.3 rad away)
@@ -132,6 +135,10 @@ pub(crate) struct FarState {
     /// candidates, metres (negative: none).
     reached: f64,
     hypothesis: Option<Hypothesis>,
+    /// A far match found in the last turn, refined and tested in the next (slot, anchor).
+    found: Option<(u16, u32, FarMatch)>,
+    /// The last turn built a search pyramid and searched nothing.
+    built: bool,
 }
 
 impl FarState {
@@ -147,6 +154,8 @@ impl FarState {
             current: None,
             reached: -1.0,
             hypothesis: None,
+            found: None,
+            built: false,
         }
     }
 
@@ -157,7 +166,7 @@ impl FarState {
 
     /// No search planned or running.
     fn idle(&self) -> bool {
-        self.current.is_none() && self.queue.is_empty()
+        self.current.is_none() && self.queue.is_empty() && self.found.is_none()
     }
 
     /// Nothing kept, planned or running.
@@ -276,6 +285,17 @@ impl Mapper<'_> {
 
     /// One back-end step of the far search; whether it did any work.
     pub(crate) fn step_far(&mut self) -> bool {
+        if let Some((slot, anchor, m)) = self.st.far.found.take() {
+            // The submap may have been recycled meanwhile.
+            let valid = self
+                .submaps
+                .get(slot as usize)
+                .is_some_and(|s| s.in_use && !s.active && s.anchor_serial == anchor);
+            if valid {
+                self.propose(slot as usize, anchor, &m);
+            }
+            return true;
+        }
         let sweeping = match &self.st.far.hypothesis {
             Some(h) if h.swept => return false,
             Some(_) => true,
@@ -310,6 +330,7 @@ impl Mapper<'_> {
             }
             return false;
         };
+        let build = self.st.loops.pyramid_of != Some((slot, anchor));
         let Some((submap, pyramid)) = submap_and_pyramid(
             self.cells,
             self.submaps,
@@ -321,7 +342,16 @@ impl Mapper<'_> {
             self.st.far.current = None;
             return true;
         };
-        let step = self.st.far.search.step(&submap, &pyramid, STEP_BUDGET);
+        // A pyramid built in this turn is searched in the next, unless it had to be built
+        // again (the windowed loop search shares its storage): then a quarter turn's search
+        // follows the build.
+        if build && !self.st.far.built {
+            self.st.far.built = true;
+            return true;
+        }
+        self.st.far.built = false;
+        let budget = if build { STEP_BUDGET / 4 } else { STEP_BUDGET };
+        let step = self.st.far.search.step(&submap, &pyramid, budget);
         let found = match step {
             Ok(FarStep::Working) => return true,
             Ok(FarStep::Done(found)) => found,
@@ -336,9 +366,7 @@ impl Mapper<'_> {
             }
             return true;
         }
-        if let Some(m) = found {
-            self.propose(slot as usize, anchor, &m);
-        }
+        self.st.far.found = found.map(|m| (slot, anchor, m));
         true
     }
 
@@ -385,6 +413,7 @@ impl Mapper<'_> {
         far.search.cancel();
         far.planned = false;
         far.reached = -1.0;
+        far.found = None;
         self.st.stats.far_refuted += 1;
     }
 

@@ -11,9 +11,15 @@
 //!   `H dx = -g` stop between edges; sums run in edge order, so a split sum is the same sum;
 //! * the numeric factorization stops between columns (its pending-update lists live in the
 //!   workspace), and so do the forward and the backward substitution;
-//! * the odometry-chain gate, the structural refresh (with the minimum-degree ordering when
-//!   the structure changed), the variance of unit weight and the innovation tests run whole:
-//!   a call that has already worked hands them to the next call instead of starting them.
+//! * the minimum-degree ordering of a structural analysis stops between pivots (its
+//!   elimination graph lives in the workspace, see `ordering::Elimination`);
+//! * the odometry-chain gate stops between nodes of the chain and between edges of its test,
+//!   its support test between the loops' lower ends;
+//! * the innovation tests stop between loops and inside a test's forward and backward solves;
+//! * the set-up and end of the gate and of its support test, the active-edge flags of the
+//!   structural refresh, the set-up and the end of an analysis and the variance of unit weight
+//!   run whole: a call that has already worked hands them to the next call instead of
+//!   starting them.
 //!
 //! **Work units.** One unit is one `3x3` block multiply-subtract of the factorization (27
 //! multiply-adds). The other items are charged by their measured cost in those units on the
@@ -33,7 +39,7 @@
 use super::cholesky::{self, Factor};
 use super::iterate::apply_step;
 use super::linearize::{self, Stage, Warm};
-use super::{check_buffers, gate, ordering, refresh_structure};
+use super::{admission, check_buffers, gate, ordering, refresh_flags};
 use super::{Method, SolveError, SolveFailure, SolveReport, SolverBuffers, SolverOptions};
 use crate::graph::{PoseEdge, PoseGraph, PoseNode, RobustKernel};
 use crate::storage::NodeId;
@@ -42,7 +48,7 @@ mod run;
 use run::{carry, chunk_end};
 
 /// The cost of each item in work units (one `3x3` block multiply-subtract of the
-/// factorization), measured on the Cortex-A9 (about 60 instructions per unit).
+/// factorization), measured on the Cortex-A9 (85 to 110 instructions per unit).
 pub mod work {
     /// Cosine and sine of one edge's measured angle.
     pub const EDGE_TRIG: u64 = 4;
@@ -54,12 +60,27 @@ pub mod work {
     pub const NODE_UPDATE: u64 = 1;
     /// Substitution blocks per unit (a block-vector product is a third of a block product).
     pub const SOLVE_BLOCKS_PER_UNIT: u64 = 3;
-    /// Per edge of the odometry-chain gate and its support test (run whole).
-    pub const EDGE_GATE: u64 = 12;
-    /// Per edge of the structural refresh, without the ordering (run whole).
+    /// Per max-mixture loop the innovation tests look at (its residual), and per resumption
+    /// of its test.
+    pub const ADMISSION_EDGE: u64 = 12;
+    /// Substitution blocks per unit in the innovation tests (measured: their solves cost half
+    /// as much again per block as the iteration's).
+    pub const ADMISSION_BLOCKS_PER_UNIT: u64 = 2;
+    /// Per node of the odometry chain of the gate, and per node visited by its support test.
+    pub const GATE_NODE: u64 = 16;
+    /// Per edge of the gate's test that is not a max-mixture loop.
+    pub const GATE_EDGE: u64 = 1;
+    /// Per max-mixture loop tested by the gate, and per loop visited by the support test.
+    pub const GATE_LOOP: u64 = 24;
+    /// Per pair of loops whose consistency the support test computes.
+    pub const GATE_PAIR: u64 = 48;
+    /// Per edge of the structural refresh's active flags and fingerprint (run whole).
     pub const EDGE_REFRESH: u64 = 2;
-    /// Per node of a minimum-degree ordering (run whole, when the structure changed).
-    pub const NODE_ORDERING: u64 = 30;
+    /// Per node and edge of a structural analysis's set-up, and per node, edge and factor
+    /// block of its end (each run whole, when the structure changed).
+    pub const ANALYSIS_ITEM: u64 = 1;
+    /// Adjacency entries the minimum-degree elimination visits per unit.
+    pub const ORDERING_ENTRIES_PER_UNIT: u64 = 3;
 }
 
 /// What [`ChunkedSolve::advance`] did.
@@ -88,7 +109,7 @@ enum Run {
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Phase {
     Trig,
-    Gate,
+    Gate(GateStep),
     Structure,
     InitialCost,
     GnCost,
@@ -103,6 +124,28 @@ enum Phase {
     Admission(u32),
     FinalCost,
     Rejected,
+    /// A structural analysis, then the initial cost or the iteration's assembly.
+    Analyze(Resume),
+}
+
+/// Where the odometry-chain gate is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum GateStep {
+    Index,
+    Chain,
+    Test,
+    Link,
+    Pairs,
+    End,
+}
+
+/// What follows a structural analysis.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Resume {
+    /// The refresh before the initial cost.
+    Start,
+    /// The refresh at the top of a Gauss-Newton iteration.
+    Iteration,
 }
 
 /// The state of one Gauss-Newton run (see `iterate::gauss_newton`).
@@ -141,6 +184,14 @@ pub struct ChunkedSolve {
     /// Running sums (robust cost, chi2) of the current evaluation or assembly.
     acc: (f64, f64),
     rejected: usize,
+    /// The innovation tests in progress.
+    admit: admission::Admit,
+    /// The gate's odometry chain in progress.
+    chain: gate::Chain,
+    /// The fingerprint of the analysis in progress.
+    fingerprint: u64,
+    /// The minimum-degree elimination in progress (`None`: not set up yet).
+    elim: Option<ordering::Elimination>,
     /// Work units of the last call.
     spent: u64,
 }
@@ -195,6 +246,10 @@ impl ChunkedSolve {
             cursor: 0,
             acc: (0.0, 0.0),
             rejected: 0,
+            admit: admission::Admit::START,
+            chain: gate::Chain::START,
+            fingerprint: 0,
+            elim: None,
             spent: 0,
         })
     }
@@ -283,32 +338,42 @@ impl ChunkedSolve {
                 self.cursor = end;
                 if end == m {
                     self.phase = if self.gated {
-                        Phase::Gate
+                        Phase::Gate(GateStep::Index)
                     } else {
                         Phase::Structure
                     };
                 }
             }
-            Phase::Gate => {
-                if !whole(m as u64 * work::EDGE_GATE, spent) {
-                    return None;
+            Phase::Gate(step) => {
+                if let Some(next) = self.gate_step(step, nodes, edges, ws, whole, left, spent) {
+                    self.phase = next;
                 }
-                let chi2 = self.options.gate_chi2;
-                gate::gate_loops(n, edges, ws, chi2);
-                self.report.gated_loops = gate::support_loops(n, edges, ws, chi2);
-                self.phase = Phase::Structure;
             }
             Phase::Structure => {
                 if !whole(self.refresh_cost(n, m), spent) {
                     return None;
                 }
                 let (gauge, warm) = (self.gauge_first, self.gn.warm);
-                if let Err(e) =
-                    refresh_structure(nodes, edges, ws, gauge, n, warm, &mut self.report)
-                {
-                    return Some(self.fail(e));
+                match refresh_flags(nodes, edges, ws, gauge, n, warm) {
+                    (_, Some(fp)) => self.begin_analysis(fp, Resume::Start),
+                    (_, None) => self.begin_sum(Phase::InitialCost),
                 }
-                self.begin_sum(Phase::InitialCost);
+            }
+            Phase::Analyze(resume) => {
+                let analysis = self.analyze_chunk(nodes, edges, ws, whole, left, spent);
+                match analysis {
+                    Ok(false) => {}
+                    Ok(true) => match resume {
+                        Resume::Start => self.begin_sum(Phase::InitialCost),
+                        Resume::Iteration => self.assemble_begin(ws, spent),
+                    },
+                    Err(e) => {
+                        return match resume {
+                            Resume::Start => Some(self.fail(e)),
+                            Resume::Iteration => self.run_ended(nodes, edges, ws, Some(e)),
+                        };
+                    }
+                }
             }
             Phase::InitialCost => {
                 if self.cost_chunk(nodes, edges, ws, Warm::Off, left, spent) {
@@ -346,14 +411,12 @@ impl ChunkedSolve {
                     return None;
                 }
                 let (gauge, warm) = (self.gauge_first, self.gn.warm);
-                match refresh_structure(nodes, edges, ws, gauge, n, warm, &mut self.report) {
-                    Ok(changed) => self.gn.changed = changed,
-                    Err(e) => return self.run_ended(nodes, edges, ws, Some(e)),
+                let (changed, due) = refresh_flags(nodes, edges, ws, gauge, n, warm);
+                self.gn.changed = changed;
+                match due {
+                    Some(fp) => self.begin_analysis(fp, Resume::Iteration),
+                    None => self.assemble_begin(ws, spent),
                 }
-                let (vars, nnz) = (ws.key.vars, ws.key.nnz);
-                linearize::assemble_begin(vars, nnz, &mut linearize::System::of(ws, warm));
-                *spent = spent.saturating_add(((vars + nnz) / 8) as u64);
-                self.begin_sum(Phase::GnAssemble);
             }
             Phase::GnAssemble => {
                 let end = chunk_end(self.cursor, m, left, work::EDGE_ASSEMBLY);
@@ -460,15 +523,11 @@ impl ChunkedSolve {
                     self.begin_sum(Phase::FinalCost);
                     return None;
                 };
-                // One test is three solves with the factor, each forward and back.
-                let per_test = 6 * (ws.key.nnz + ws.key.vars) as u64 / work::SOLVE_BLOCKS_PER_UNIT;
-                let tests = usize::try_from(left / per_test.max(1)).unwrap_or(usize::MAX);
-                let (next, admitted, tested) =
-                    gate::admit_range(nodes, edges, ws, limit, self.cursor, tests.max(1));
-                *spent = spent.saturating_add(per_test.saturating_mul(tested as u64).max(1));
-                self.cursor = next;
+                let (used, admitted) =
+                    admission::admit_chunk(nodes, edges, ws, limit, &mut self.admit, left);
+                *spent = spent.saturating_add(used.max(1));
                 self.rejected += admitted;
-                if next < m {
+                if self.admit.next < m {
                     return None;
                 }
                 if self.rejected == 0 {

@@ -2,13 +2,14 @@
 //! stopping rule of `iterate::gauss_newton`), the sequence of runs of [`super::super::solve`]
 //! (warm start, free run, admission rounds), and the small helpers of the chunked phases.
 
-use super::{work, ChunkedSolve, Gn, Phase, Progress, Run};
+use super::{work, ChunkedSolve, GateStep, Gn, Phase, Progress, Resume, Run};
 use crate::geom::Se2;
 use crate::graph::{PoseEdge, PoseNode};
+use crate::solver::admission;
 use crate::solver::gate;
 use crate::solver::iterate::{apply_step, MAX_HALVINGS, SETTLE_ITERATIONS};
 use crate::solver::linearize::{self, Warm};
-use crate::solver::{SolveError, SolverBuffers, ADMISSION_ROUNDS};
+use crate::solver::{analysis_done, ordering, SolveError, SolverBuffers, ADMISSION_ROUNDS};
 
 impl ChunkedSolve {
     /// The end of a Gauss-Newton iteration: step halving, divergence and the stopping rule
@@ -97,7 +98,7 @@ impl ChunkedSolve {
                 if self.gated && usable && round < ADMISSION_ROUNDS {
                     // `rejected` counts the loops this round admits until the final count.
                     self.rejected = 0;
-                    self.cursor = 0;
+                    self.admit = admission::Admit::START;
                     self.phase = Phase::Admission(round);
                 } else {
                     self.begin_sum(Phase::FinalCost);
@@ -130,9 +131,134 @@ impl ChunkedSolve {
         self.phase = phase;
     }
 
-    /// The structural refresh's cost in work units, the ordering included when it is due.
+    /// The cost in work units of the structural refresh's active flags and fingerprint.
     pub(super) fn refresh_cost(&self, n: usize, m: usize) -> u64 {
-        (m as u64) * work::EDGE_REFRESH + (n as u64) * work::NODE_ORDERING
+        (m as u64) * work::EDGE_REFRESH + (n as u64) * work::NODE_UPDATE
+    }
+
+    /// Starts a structural analysis whose fingerprint will be `fp`, then `resume`.
+    pub(super) fn begin_analysis(&mut self, fp: u64, resume: Resume) {
+        self.fingerprint = fp;
+        self.elim = None;
+        self.phase = Phase::Analyze(resume);
+    }
+
+    /// Runs the next part of the structural analysis: its set-up, a chunk of pivots or its
+    /// end; true when the analysis is complete. `whole` charges a part that runs whole (false:
+    /// it starts the next call).
+    pub(super) fn analyze_chunk(
+        &mut self,
+        nodes: &[PoseNode],
+        edges: &[PoseEdge],
+        ws: &mut SolverBuffers<'_>,
+        whole: impl Fn(u64, &mut u64) -> bool,
+        left: u64,
+        spent: &mut u64,
+    ) -> Result<bool, SolveError> {
+        let (n, m) = (nodes.len(), edges.len());
+        let per = work::ORDERING_ENTRIES_PER_UNIT;
+        match self.elim {
+            None => {
+                if whole((n + m) as u64 * work::ANALYSIS_ITEM, spent) {
+                    let elim = ordering::analyze_begin(nodes, edges, self.gauge_first, ws)?;
+                    self.elim = Some(elim);
+                }
+                Ok(false)
+            }
+            Some(mut elim) if !elim.done() => {
+                let visited = ordering::eliminate(&mut elim, ws, left.saturating_mul(per))?;
+                *spent = spent.saturating_add(visited.div_ceil(per));
+                self.elim = Some(elim);
+                Ok(false)
+            }
+            Some(elim) => {
+                let cost = (n + m + elim.blocks()) as u64 * work::ANALYSIS_ITEM;
+                if !whole(cost, spent) {
+                    return Ok(false);
+                }
+                ordering::analyze_end(n, edges, &elim, ws)?;
+                analysis_done(n, m, self.fingerprint, ws, &mut self.report);
+                self.elim = None;
+                Ok(true)
+            }
+        }
+    }
+
+    /// Runs the next part of the odometry-chain gate and its support test (module `gate`);
+    /// returns the phase that follows when this part ended.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn gate_step(
+        &mut self,
+        step: GateStep,
+        nodes: &[PoseNode],
+        edges: &[PoseEdge],
+        ws: &mut SolverBuffers<'_>,
+        whole: impl Fn(u64, &mut u64) -> bool,
+        left: u64,
+        spent: &mut u64,
+    ) -> Option<Phase> {
+        let (n, m) = (nodes.len(), edges.len());
+        let chi2 = self.options.gate_chi2;
+        let setup = (n + m) as u64 * work::ANALYSIS_ITEM;
+        match step {
+            GateStep::Index => {
+                if !whole(setup, spent) {
+                    return None;
+                }
+                gate::gate_index(n, edges, ws);
+                self.chain = gate::Chain::START;
+                Some(Phase::Gate(GateStep::Chain))
+            }
+            GateStep::Chain => {
+                let used = gate::gate_chain(&mut self.chain, n, edges, ws, left);
+                *spent = spent.saturating_add(used);
+                (self.chain.next >= n).then(|| {
+                    self.cursor = 0;
+                    Phase::Gate(GateStep::Test)
+                })
+            }
+            GateStep::Test => {
+                let (next, used, _) = gate::gate_test(n, edges, ws, chi2, self.cursor, left);
+                *spent = spent.saturating_add(used);
+                self.cursor = next;
+                (next >= m).then_some(Phase::Gate(GateStep::Link))
+            }
+            GateStep::Link => {
+                if !whole(setup, spent) {
+                    return None;
+                }
+                self.cursor = 0;
+                match gate::support_begin(n, edges, ws) {
+                    Some(kept) => {
+                        self.report.gated_loops = kept;
+                        Some(Phase::Structure)
+                    }
+                    None => Some(Phase::Gate(GateStep::Pairs)),
+                }
+            }
+            GateStep::Pairs => {
+                let (next, used) = gate::support_pairs(n, edges, ws, chi2, self.cursor, left);
+                *spent = spent.saturating_add(used);
+                self.cursor = next;
+                (next >= n).then_some(Phase::Gate(GateStep::End))
+            }
+            GateStep::End => {
+                if !whole(m as u64 * work::ANALYSIS_ITEM, spent) {
+                    return None;
+                }
+                self.report.gated_loops = gate::support_end(edges, ws);
+                self.cursor = 0;
+                Some(Phase::Structure)
+            }
+        }
+    }
+
+    /// The start of an iteration's assembly, once the structure is current.
+    pub(super) fn assemble_begin(&mut self, ws: &mut SolverBuffers<'_>, spent: &mut u64) {
+        let (vars, nnz, warm) = (ws.key.vars, ws.key.nnz, self.gn.warm);
+        linearize::assemble_begin(vars, nnz, &mut linearize::System::of(ws, warm));
+        *spent = spent.saturating_add(((vars + nnz) / 8) as u64);
+        self.begin_sum(Phase::GnAssemble);
     }
 
     /// Evaluates the next edges of a cost sum into `acc`; true when the sum is complete.
