@@ -7,10 +7,13 @@
 //! * [`ScanGeometry`]: beam angles and range limits of a planar laser scanner, and
 //!   [`MAX_BEAMS`], the most beams one scan may carry.
 //! * [`ImageView`]: a camera picture over `&[u8]` (mono8, rgb8, bgr8).
+//! * [`ld06`]: the LDRobot LD06 / LD19 serial LiDAR protocol: packets decoded byte by byte,
+//!   points gathered into whole revolutions.
 //! * [`log`]: the compact binary sensor log (`.cloilog`) streamed to the firmware, with its
 //!   encoder and a streaming, allocation-free decoder.
 
 mod image;
+pub mod ld06;
 pub mod log;
 mod odometry;
 mod scan;
