@@ -347,20 +347,6 @@ impl<'r> Mapper<'r> {
             })
     }
 
-    /// The map as it stands (graph, node metadata and submaps), to save with
-    /// [`mapfile::write_map`].
-    pub fn saved_map(&self) -> mapfile::MapRef<'_> {
-        mapfile::MapRef {
-            grid: self.cfg.grid,
-            nodes: self.graph.nodes(),
-            meta: self.nodes(),
-            edges: self.graph.edges(),
-            submaps: self.submaps,
-            cells: self.cells,
-            next_serial: self.st.frames.next_serial(),
-        }
-    }
-
     /// Adds a wheel-odometry pose measured at `stamp` ns.
     ///
     /// # Errors

@@ -86,6 +86,21 @@ pub struct MapRef<'a> {
     pub next_serial: u32,
 }
 
+impl super::Mapper<'_> {
+    /// The map as it stands (graph, node metadata and submaps), to save with [`write_map`].
+    pub fn saved_map(&self) -> MapRef<'_> {
+        MapRef {
+            grid: self.cfg.grid,
+            nodes: self.graph.nodes(),
+            meta: self.nodes(),
+            edges: self.graph.edges(),
+            submaps: self.submaps,
+            cells: self.cells,
+            next_serial: self.st.frames.next_serial(),
+        }
+    }
+}
+
 /// What a map file holds, from its map section.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MapSummary {
