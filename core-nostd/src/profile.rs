@@ -163,6 +163,12 @@ impl<
     /// [`MapperError`] when the configuration does not fit the resources (e.g. a submap grid
     /// of another size than `CELLS`).
     pub fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError> {
+        self.parts().start(config)
+    }
+
+    /// The resources as the parts a mapper is assembled from, as they are (to read a saved map
+    /// into, then [`MapperParts::localize`]).
+    pub fn parts(&mut self) -> MapperParts<'_> {
         MapperParts {
             graph: PoseGraph::new(&mut self.pose_graph.nodes, &mut self.pose_graph.edges),
             solver: self.solver.buffers(),
@@ -179,7 +185,6 @@ impl<
             cameras: None,
             state: &mut self.state,
         }
-        .start(config)
     }
 
     /// The graph, node metadata and submap storage, for reading a saved map into

@@ -62,6 +62,9 @@ pub enum Command {
     /// Build a map from a CARMEN log, a ROS 2 bag, or (without input) the simulated home:
     /// map.pgm/yaml/png, trajectory.tum, gpe.tum, graph.g2o and report.json.
     Map(crate::map::command::MapArgs),
+    /// Localize in a map saved with `cloi map --save` without changing it: the same inputs
+    /// and outputs as `cloi map`, the report telling how much of the run was localized.
+    Localize(crate::map::command::LocalizeArgs),
     /// Check a map saved with `cloi map --save` and print what it holds (with `--out`, also
     /// its map.pgm/yaml/png).
     ShowMap(crate::map::show::ShowMapArgs),
@@ -83,6 +86,7 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Eval(cmd) => crate::eval::cli::run(&cmd, &crate::prune::batch_optimum, out),
         Command::Sim(args) => crate::sim::command::run(&args, out),
         Command::Map(args) => crate::map::command::run_command(&args, cli.quiet, out),
+        Command::Localize(args) => crate::map::command::run_localize(&args, cli.quiet, out),
         Command::ShowMap(args) => crate::map::show::run(&args, out),
     }
 }

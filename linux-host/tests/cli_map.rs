@@ -641,3 +641,77 @@ fn a_saved_map_reads_back_whole_and_a_damaged_one_is_refused_with_its_reason() {
         assert!(!err.contains("panicked"), "{what}: {err}");
     }
 }
+
+#[test]
+fn a_saved_home_is_localized_in_by_another_run_from_a_given_pose_and_from_nowhere() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (dir, file) = (tmp.path().join("map"), tmp.path().join("home.cloimap"));
+    let out = map_home("40", &dir)
+        .arg("--save")
+        .arg(&file)
+        .output()
+        .expect("cloi runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mapped = tum_rows(&dir.join("trajectory.tum"));
+    let localize = |name: &str, initial: Option<&str>| {
+        let out_dir = tmp.path().join(name);
+        let mut c = Command::new(env!("CARGO_BIN_EXE_cloi"));
+        // The same route with another draw of the sensor noise.
+        c.arg("localize")
+            .arg(&file)
+            .args(["--deterministic", "--quiet", "--sim-duration", "40"])
+            .args(["--sim-seed", "7", "--out"])
+            .arg(&out_dir);
+        if let Some(p) = initial {
+            c.arg("--initial-pose").arg(p);
+        }
+        let out = c.output().expect("cloi runs");
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        (report(&out_dir), tum_rows(&out_dir.join("gpe.tum")))
+    };
+    for (name, initial) in [("given", Some("0,0,0")), ("global", None)] {
+        let (r, gpe) = localize(name, initial);
+        let l = &r["localization"];
+        eprintln!("{name}: {l:#}");
+        // Nothing was added to the map.
+        assert_eq!(r["keyframes"], 0);
+        assert_eq!(l["lost"], 0, "{name}");
+        let fraction = l["localized_fraction"].as_f64().expect("fraction");
+        let fix = l["time_to_first_fix_s"].as_f64().expect("a fix");
+        if initial.is_some() {
+            assert_eq!(fraction, 1.0);
+        } else {
+            assert!(fix <= 5.0, "first fix after {fix} s");
+            assert!(fraction >= 0.85, "{fraction}");
+        }
+        // Once localized, the pose is where the map's own run was at that time (its scans
+        // come within 0.1 s of each other).
+        let mut errors: Vec<f64> = gpe
+            .iter()
+            .filter(|g| g[0] >= gpe[0][0] + fix + 0.5)
+            .filter_map(|g| {
+                let m = mapped
+                    .iter()
+                    .min_by(|a, b| (a[0] - g[0]).abs().total_cmp(&(b[0] - g[0]).abs()))?;
+                ((m[0] - g[0]).abs() < 0.1).then(|| (m[1] - g[1]).hypot(m[2] - g[2]))
+            })
+            .collect();
+        errors.sort_by(f64::total_cmp);
+        assert!(
+            errors.len() > 100,
+            "{name}: {} poses compared",
+            errors.len()
+        );
+        let (median, worst) = (errors[errors.len() / 2], errors[errors.len() - 1]);
+        eprintln!("{name}: against the map's run median {median:.3} m, max {worst:.3} m");
+        assert!(median < 0.05 && worst < 0.12, "{name}: {median} {worst}");
+    }
+}

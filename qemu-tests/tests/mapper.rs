@@ -119,6 +119,7 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         progress: false,
         keep_gpe: true,
         save_map: Some(dir.join("host.cloimap")),
+        localize: None,
     };
     let input = open_input(&log, &InputOptions::default()).unwrap();
     let host = run(input, &settings).expect("cloi map on x86-64");

@@ -96,6 +96,12 @@ impl GpeTracker {
         self.anchor = serial;
     }
 
+    /// Continues from `pose` as if it had been the previous frame's real-time pose (the
+    /// localization-only mode, where a confirmed match with the map moves the pose at once).
+    pub fn restart_at(&mut self, pose: Se2) {
+        self.previous = Some(pose);
+    }
+
     /// Counters so far.
     pub fn counters(&self) -> GpeCounters {
         self.counters

@@ -64,6 +64,12 @@ impl FrameState {
         self.next_serial
     }
 
+    /// Whether the front-end pose `pose` is a keyframe, recording it when it is (for keyframes
+    /// that make no frame node: localization-only mode).
+    pub(crate) fn offer(&mut self, pose: &Se2) -> bool {
+        self.selector.offer(pose)
+    }
+
     /// Serial of the newest frame node (0 before the first).
     pub(crate) fn newest_serial(&self) -> u32 {
         self.next_serial.saturating_sub(1)

@@ -40,6 +40,7 @@ pub mod config;
 mod far;
 pub mod feed;
 mod frames;
+mod localize;
 mod loops;
 pub mod mapfile;
 mod pool;
@@ -65,40 +66,13 @@ pub use config::{BackendConfig, FrontendNoise, LoopConfig, MapperConfig};
 pub use feed::{Feeder, Pushed, ScanSlots};
 pub use frames::NodeMeta;
 pub use gpe::GpeConfig;
+pub use localize::{LocalizeCounters, GLOBAL_BUDGET, LOST_MISSES};
 pub use submaps::SubmapMeta;
-pub use types::{FrameOutput, MapperError, MapperStats, ScanInput};
+pub use types::{FrameOutput, MapperError, MapperStats, Probe, ScanInput, Section};
 
 use frames::FrameState;
 use loops::LoopState;
 use submaps::SubmapState;
-
-/// The parts of [`Mapper::push_scan`], in the order they run, for a caller that measures them
-/// (the firmware counts the instructions of each under QEMU).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Section {
-    /// Checks, preprocessing and ICP against the local map (entered first, on every scan).
-    Frontend,
-    /// The GPE update or the worst-case prediction (accepted scans).
-    Gpe,
-    /// Keyframe selection and, for a keyframe, the frame node, submap and local map updates.
-    Keyframe,
-    /// The loop-closure search (keyframes whose serial is a multiple of `loops.every`).
-    LoopSearch,
-    /// `push_scan` returns (entered last, on every scan).
-    Done,
-}
-
-/// Told when [`Mapper::push_scan_probed`] enters each [`Section`]. It must not touch the
-/// mapper; the unit type is the probe that does nothing.
-pub trait Probe {
-    /// `section` starts now (and the previous one ended).
-    fn enter(&mut self, section: Section);
-}
-
-impl Probe for () {
-    #[inline(always)]
-    fn enter(&mut self, _section: Section) {}
-}
 
 /// Points of the front-end's local point map.
 pub const LOCAL_MAP_POINTS: usize = 4096;
@@ -125,6 +99,8 @@ pub struct MapperState {
     pub(crate) loops: LoopState,
     pub(crate) far: far::FarState,
     pub(crate) backend: BackendSchedule,
+    /// The localization-only mode's state; `None` when mapping.
+    pub(crate) localize: Option<localize::LocalizeState>,
 }
 
 impl MapperState {
@@ -140,6 +116,7 @@ impl MapperState {
             loops: LoopState::new(),
             far: far::FarState::new(),
             backend: BackendSchedule::new(),
+            localize: None,
         }
     }
 }
@@ -415,6 +392,9 @@ impl<'r> Mapper<'r> {
         let front =
             (self.st.frontend).track(self.scan, self.local, odometry, motion.as_ref(), &lidar);
         self.odometry.set_gyro_bias(self.st.frontend.gyro_bias());
+        if self.st.localize.is_some() {
+            return Ok(self.localize_frame(scan.stamp, &front, deadline_passed, probe));
+        }
 
         // GPE (III-C): the real-time global pose, or the worst-case prediction.
         probe.enter(Section::Gpe);
@@ -431,6 +411,7 @@ impl<'r> Mapper<'r> {
             keyframe: false,
             predicted: global.predicted,
             loops: 0,
+            localized: true,
         };
         if let Some(serial) = self.keyframe(scan.stamp, &front.pose, &global.pose) {
             out.keyframe = true;
@@ -539,7 +520,10 @@ impl<'r> Mapper<'r> {
     /// Asks for an optimization at the next back-end step even without new loop closures (e.g.
     /// to settle the map at the end of a run).
     pub fn request_optimization(&mut self) {
-        self.st.backend.loop_added();
+        // A map being localized in stays as it was saved.
+        if self.st.localize.is_none() {
+            self.st.backend.loop_added();
+        }
     }
 
     /// The back-end's share of one frame in an interleaved schedule: up to

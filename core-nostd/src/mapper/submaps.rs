@@ -169,7 +169,9 @@ impl Mapper<'_> {
         if restart {
             self.local.clear();
             self.st.submaps.local_origin = Some(*pose);
-            if self.cfg.local_from_submaps {
+            // A saved map's submaps lie in another session's front-end frame: localizing,
+            // the local map refills from this session's scans only.
+            if self.cfg.local_from_submaps && self.st.localize.is_none() {
                 self.refill_local(pose);
             }
         }

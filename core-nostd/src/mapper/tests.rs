@@ -864,3 +864,142 @@ fn a_loop_beyond_the_window_is_found_by_the_far_search_confirmed_and_closes_the_
         assert!(relative_error(&r.final_poses, &r.truth, 20) < 0.05);
     });
 }
+
+/// Feeds the frames `range` of the path (odometry with a heading bias of `bias` radians per
+/// metre, starting at the identity) to `mapper`, stepping its back-end after each; the outputs.
+fn feed_frames(
+    mapper: &mut Mapper<'_>,
+    range: core::ops::Range<usize>,
+    bias: f64,
+) -> Vec<FrameOutput> {
+    let truth = path();
+    let mut odom = Se2::IDENTITY;
+    let mut outputs = Vec::new();
+    for i in range.clone() {
+        if i > range.start {
+            let inc = truth[i - 1].between(&truth[i]);
+            let d = libm::hypot(inc.x, inc.y);
+            odom = odom.compose(&Se2::new(inc.x, inc.y, inc.theta + d * bias));
+        }
+        let t = 1_000_000_000 + i as i64 * 100_000_000;
+        mapper.push_odometry(t, odom).expect("odometry in order");
+        let ranges = scan_at(&truth[i]);
+        let input = ScanInput {
+            stamp: t,
+            ranges: &ranges,
+            geometry: geometry(),
+            mounting: Se2::IDENTITY,
+        };
+        outputs.push(mapper.push_scan(&input, false).expect("scan accepted"));
+        mapper.step_backend(5);
+    }
+    outputs
+}
+
+/// The first lap mapped (with unbiased odometry) and saved as a map file, and the map's own
+/// largest error: of a
+/// keyframe's pose against the truth in the map's frame (the first pose's).
+fn saved_first_lap() -> (Vec<u8>, f64) {
+    let truth = path();
+    let mut res: Box<TestResources> = Box::default();
+    let mut mapper = res.mapper(config()).expect("resources fit");
+    feed_frames(&mut mapper, 0..truth.len() / 2, 0.0);
+    mapper.request_optimization();
+    while mapper.step_backend(10) != BackendStep::Idle {}
+    let map_error = mapper
+        .nodes()
+        .iter()
+        .zip(mapper.graph().nodes())
+        .map(|(m, n)| {
+            let frame = ((m.stamp - 1_000_000_000) / 100_000_000) as usize;
+            let e = truth[0].between(&truth[frame]).between(&n.pose);
+            libm::hypot(e.x, e.y)
+        })
+        .fold(0.0, f64::max);
+    let mut buf = std::vec![0u8; 1 << 20];
+    let mut sink: &mut [u8] = &mut buf;
+    let n = mapfile::write_map(&mapper.saved_map(), &mut sink).expect("fits");
+    buf.truncate(n as usize);
+    (buf, map_error)
+}
+
+/// Localizes the second lap, from frame `start` on, in the saved first lap; the outputs and
+/// the error of each against the truth in the map's frame (the first pose's).
+fn localize_second_lap(
+    map: &[u8],
+    start: usize,
+    initial: bool,
+) -> (Vec<FrameOutput>, Vec<f64>, LocalizeCounters) {
+    let truth = path();
+    let to_map = |p: &Se2| truth[0].between(p);
+    let mut res: Box<TestResources> = Box::default();
+    let mut parts = res.parts();
+    let mut input: &[u8] = map;
+    let reader = mapfile::MapReader::open(&mut input).expect("a map");
+    reader
+        .read_into_parts(config().grid, &mut parts)
+        .expect("fits");
+    let nodes = parts.graph.node_count();
+    let initial = initial.then(|| to_map(&truth[start]));
+    let mut mapper = parts.localize(config(), initial).expect("fits");
+    // The odometry of `run_with`, 2 degrees of heading bias per metre.
+    let outputs = feed_frames(&mut mapper, start..truth.len(), 0.035);
+    // Nothing was added to the map.
+    assert_eq!(mapper.graph().node_count(), nodes);
+    assert_eq!(mapper.stats().keyframes, 0);
+    let errors = outputs
+        .iter()
+        .zip(&truth[start..])
+        .map(|(o, t)| {
+            let e = to_map(t).between(&o.pose);
+            libm::hypot(e.x, e.y)
+        })
+        .collect();
+    let counters = mapper.localize_counters().expect("localizing");
+    (outputs, errors, counters)
+}
+
+#[test]
+fn a_saved_map_localizes_the_next_lap_from_a_given_pose() {
+    with_stack(|| {
+        let (map, map_error) = saved_first_lap();
+        let start = path().len() / 2 + 7;
+        let (outputs, errors, c) = localize_second_lap(&map, start, true);
+        assert!(outputs.iter().all(|o| o.localized), "{c:?}");
+        assert_eq!((c.fixes, c.lost), (1, 0), "{c:?}");
+        assert!(c.matches * 10 >= c.keyframes * 9, "{c:?}");
+        let worst = errors.iter().copied().fold(0.0, f64::max);
+        // Against the truth the pose can be no better than the map it is localized in.
+        assert!(
+            worst < map_error + 0.02,
+            "worst error {worst} m (map {map_error} m), {c:?}"
+        );
+        // No jump: each step of the pose is the front-end's within 2 cm.
+        for w in outputs.windows(2) {
+            let g = w[0].pose.between(&w[1].pose);
+            let f = w[0].frontend.between(&w[1].frontend);
+            assert!(libm::hypot(g.x - f.x, g.y - f.y) < 0.02);
+        }
+    });
+}
+
+#[test]
+fn a_saved_map_localizes_the_next_lap_from_nowhere() {
+    with_stack(|| {
+        let (map, map_error) = saved_first_lap();
+        let start = path().len() / 2 + 7;
+        let (outputs, errors, c) = localize_second_lap(&map, start, false);
+        let first = outputs.iter().position(|o| o.localized);
+        let Some(first) = first else {
+            panic!("never localized: {c:?}");
+        };
+        assert!(first < 50, "localized after {first} frames, {c:?}");
+        assert!(outputs[first..].iter().all(|o| o.localized), "{c:?}");
+        assert_eq!((c.fixes, c.lost), (1, 0), "{c:?}");
+        let worst = errors[first..].iter().copied().fold(0.0, f64::max);
+        assert!(
+            worst < map_error + 0.02,
+            "worst error {worst} m after the fix (map {map_error} m), {c:?}"
+        );
+    });
+}

@@ -187,4 +187,35 @@ pub struct FrameOutput {
     pub predicted: bool,
     /// Loop closures added for this scan.
     pub loops: u8,
+    /// The pose is tied to the map: always when mapping; in localization-only mode once a
+    /// match with the saved map is confirmed, until tracking is lost.
+    pub localized: bool,
+}
+
+/// The parts of [`Mapper::push_scan`], in the order they run, for a caller that measures them
+/// (the firmware counts the instructions of each under QEMU).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Section {
+    /// Checks, preprocessing and ICP against the local map (entered first, on every scan).
+    Frontend,
+    /// The GPE update or the worst-case prediction (accepted scans).
+    Gpe,
+    /// Keyframe selection and, for a keyframe, the frame node, submap and local map updates.
+    Keyframe,
+    /// The loop-closure search (keyframes whose serial is a multiple of `loops.every`).
+    LoopSearch,
+    /// `push_scan` returns (entered last, on every scan).
+    Done,
+}
+
+/// Told when [`Mapper::push_scan_probed`] enters each [`Section`]. It must not touch the
+/// mapper; the unit type is the probe that does nothing.
+pub trait Probe {
+    /// `section` starts now (and the previous one ended).
+    fn enter(&mut self, section: Section);
+}
+
+impl Probe for () {
+    #[inline(always)]
+    fn enter(&mut self, _section: Section) {}
 }

@@ -6,10 +6,11 @@ use std::io::BufReader;
 use std::path::Path;
 
 use anyhow::{anyhow, bail, Context, Result};
+use cloi_core::frontend::GridParams;
 use cloi_core::geom::{Info3, Se2};
 use cloi_core::graph::{EdgeKind, PoseEdge, PoseGraph, PoseNode};
 use cloi_core::mapper::mapfile::{write_map, MapReader, MapRef, MapStorage, MapSummary};
-use cloi_core::mapper::{NodeMeta, SubmapMeta};
+use cloi_core::mapper::{MapperParts, NodeMeta, SubmapMeta};
 use cloi_core::profile::PROFILES;
 use cloi_core::storage::NodeId;
 use embedded_io_adapters::std::FromStd;
@@ -75,6 +76,36 @@ impl LoadedMap {
                 Some((pose, self.cells.get(slot * per..(slot + 1) * per)?))
             })
     }
+}
+
+/// Reads the map file at `path` into a mapper's `parts` (whose submap grid is `grid`), for
+/// [`MapperParts::localize`]; returns what the file holds.
+///
+/// # Errors
+/// The file cannot be opened, is not a map, is of another version, truncated or corrupt, was
+/// made with another submap grid, or does not fit the parts' pools.
+pub fn read_map_into(
+    path: &Path,
+    grid: GridParams,
+    parts: &mut MapperParts<'_>,
+) -> Result<MapSummary> {
+    let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let mut input = FromStd::new(BufReader::with_capacity(1 << 16, file));
+    let fail = |e| anyhow!("reading the map {}: {e}", path.display());
+    let reader = MapReader::open(&mut input).map_err(fail)?;
+    reader.read_into_parts(grid, parts).map_err(fail)
+}
+
+/// The submap grid of the map file at `path` (to choose the profile it was made with).
+///
+/// # Errors
+/// As [`read_map_into`], before the sections are read.
+pub fn map_grid(path: &Path) -> Result<GridParams> {
+    let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let mut input = FromStd::new(BufReader::new(file));
+    let reader = MapReader::open(&mut input)
+        .map_err(|e| anyhow!("reading the map {}: {e}", path.display()))?;
+    Ok(reader.summary().grid)
 }
 
 /// Reads a map file. Its counts must fit the largest profile's pools (so no file sizes more

@@ -9,7 +9,8 @@ use clap::Args;
 use super::config::{MapConfig, Profile};
 use super::input::InputArgs;
 use super::output::MapReport;
-use super::run::{default_out, run, MapSettings, StampPolicy};
+use super::run::{default_out, run, LocalizeIn, MapSettings, StampPolicy};
+use cloi_core::geom::Se2;
 
 /// Arguments of `cloi map`.
 #[derive(Debug, Args)]
@@ -63,6 +64,50 @@ pub struct MapArgs {
     pub json: bool,
 }
 
+/// Arguments of `cloi localize`.
+#[derive(Debug, Args)]
+pub struct LocalizeArgs {
+    /// The saved map (`.cloimap`, from `cloi map --save`).
+    pub map: PathBuf,
+    /// The robot's pose in the map at the first scan, `X,Y,THETA` (m, m, rad); without it the
+    /// whole map is searched (global localization).
+    #[arg(long, value_name = "X,Y,THETA", value_parser = crate::io::parse_pose, allow_hyphen_values = true)]
+    pub initial_pose: Option<Se2>,
+    /// The input and the options `cloi map` takes (the profile defaults to the one whose
+    /// submap grid the map was made with).
+    #[command(flatten)]
+    pub run: MapArgs,
+}
+
+/// Runs `cloi localize`: `cloi map`'s run over a saved map that stays as it is, the pose
+/// tracked in it; the same outputs, with a `localization` section in the report.
+///
+/// # Errors
+/// As [`run_command`], and a map file that cannot be read or fits no profile.
+pub fn run_localize(args: &LocalizeArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
+    let grid = crate::io::map_file::map_grid(&args.map)?;
+    let profile = match args.run.profile {
+        Some(p) => p,
+        None => [Profile::Home, Profile::Office, Profile::Airport]
+            .into_iter()
+            .find(|p| p.core_config().grid == grid)
+            .ok_or_else(|| {
+                anyhow::anyhow!(
+                    "{}: its submap grid ({} cells of {} m) is no profile's; give --profile and \
+                     a --config with that grid",
+                    args.map.display(),
+                    grid.side,
+                    grid.resolution
+                )
+            })?,
+    };
+    let target = LocalizeIn {
+        map: args.map.clone(),
+        initial_pose: args.initial_pose,
+    };
+    execute(&args.run, profile, Some(target), quiet, out)
+}
+
 /// Runs `cloi map`: the JSON report to `out` with `--json`, warnings and a summary to
 /// stderr; `quiet` drops the progress bar and the summary.
 ///
@@ -70,6 +115,16 @@ pub struct MapArgs {
 /// Unreadable input or configuration, or outputs that cannot be written.
 pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
     let profile = args.profile.unwrap_or_else(|| default_profile(args));
+    execute(args, profile, None, quiet, out)
+}
+
+fn execute(
+    args: &MapArgs,
+    profile: Profile,
+    localize: Option<LocalizeIn>,
+    quiet: bool,
+    out: &mut dyn Write,
+) -> Result<()> {
     let mut config = MapConfig::load(profile, args.config.as_deref(), &args.set)?;
     if args.deterministic {
         config.run.deterministic = true;
@@ -91,6 +146,7 @@ pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<(
         progress: !quiet,
         keep_gpe: false,
         save_map: args.save.clone(),
+        localize,
     };
     let result = run(input, &settings)?;
     for w in &result.warnings {
@@ -101,6 +157,14 @@ pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<(
     }
     if !quiet {
         eprintln!("{}", summary(&result.report, &settings.out));
+        if let Some(l) = result.report.extra.get("localization") {
+            eprintln!(
+                "localized {:.1} % of the scans, first fix after {} s, lost {} times",
+                l["localized_fraction"].as_f64().unwrap_or(0.0) * 100.0,
+                l["time_to_first_fix_s"],
+                l["lost"]
+            );
+        }
         if let Some(path) = &settings.save_map {
             eprintln!("saved the map to {}", path.display());
         }

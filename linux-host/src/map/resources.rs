@@ -159,6 +159,12 @@ impl HeapResources {
     /// [`MapperError`] when the configuration does not fit the pools (e.g. a submap grid of
     /// another size than the profile's).
     pub fn mapper(&mut self, config: MapperConfig) -> Result<Mapper<'_>, MapperError> {
+        self.parts().start(config)
+    }
+
+    /// The pools as the parts a mapper is assembled from, as they are (to read a saved map
+    /// into, then [`MapperParts::localize`]).
+    pub fn parts(&mut self) -> MapperParts<'_> {
         MapperParts {
             graph: PoseGraph::new(&mut self.nodes, &mut self.edges),
             solver: self.solver.buffers(),
@@ -175,7 +181,6 @@ impl HeapResources {
             cameras: Some(self.cameras.parts()),
             state: &mut self.state,
         }
-        .start(config)
     }
 }
 

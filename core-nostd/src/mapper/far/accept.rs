@@ -109,7 +109,12 @@ impl Mapper<'_> {
     /// The kept scan's points at `pose` in submap `slot` that fall on cells the submap has
     /// observed, and those of them where it saw only free space all around (an obstacle where
     /// the map says there is none).
-    fn free_space_conflicts(&self, slot: usize, source: MatchSource, pose: &Se2) -> (u32, u32) {
+    pub(in crate::mapper) fn free_space_conflicts(
+        &self,
+        slot: usize,
+        source: MatchSource,
+        pose: &Se2,
+    ) -> (u32, u32) {
         let per = self.cells_per_submap;
         let Some(cells) = self.cells.get(slot * per..(slot + 1) * per) else {
             return (0, 0);
@@ -292,7 +297,7 @@ impl Mapper<'_> {
 /// the map saw only free space, agrees with the map's free space: a revisit sees the walls
 /// the map has; a place that merely looks alike puts some of its walls where the map saw
 /// through.
-fn consistent_with_free_space(inside: u32, conflicting: u32) -> bool {
+pub(in crate::mapper) fn consistent_with_free_space(inside: u32, conflicting: u32) -> bool {
     inside > 0 && (conflicting as f32) <= MAX_CONFLICT * inside as f32
 }
 

@@ -63,15 +63,15 @@ pub const PER_KEYFRAME: usize = 8;
 /// instructions each with the scan's 160 points, as measured on intel.clf).
 pub const STEP_BUDGET: u32 = 1100;
 /// Pyramid level the far search scores at (4 cells per step at level 2).
-const BASE_LEVEL: u8 = 2;
+pub(in crate::mapper) const BASE_LEVEL: u8 = 2;
 /// A far match is ambiguous, and not taken, when a pose distinct from it (1 m or 0.3 rad away)
 /// scores at least this share of its score.
-const AMBIGUITY: f32 = 0.9;
+pub(in crate::mapper) const AMBIGUITY: f32 = 0.9;
 /// Two matches are distinct places when their poses in the world differ by more than this,
 /// metres ...
-const DISTINCT_XY: f64 = 1.0;
+pub(in crate::mapper) const DISTINCT_XY: f64 = 1.0;
 /// ... or radians.
-const DISTINCT_THETA: f64 = 0.3;
+pub(in crate::mapper) const DISTINCT_THETA: f64 = 0.3;
 /// A refined match of a keyframe in a submap.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct FarMatchEdge {

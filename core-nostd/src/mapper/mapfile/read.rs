@@ -158,34 +158,65 @@ impl<'i, R: embedded_io::Read> MapReader<'i, R> {
     /// # Errors
     /// [`MapFileError::GridMismatch`], [`MapFileError::TooLarge`] before anything is read;
     /// then any fault of the sections (see [`MapReader::open`]).
-    pub fn read_into(mut self, storage: &mut MapStorage<'_>) -> Result<MapSummary, MapFileError> {
-        let s = self.summary;
-        if s.grid != storage.grid {
-            return Err(MapFileError::GridMismatch);
-        }
-        let node_room = storage.graph.node_capacity().min(storage.meta.len());
-        fits("nodes", s.nodes, node_room)?;
-        fits("edges", s.edges, storage.graph.edge_capacity())?;
-        fits("submap slots", s.submap_slots, storage.submaps.len())?;
-        let per = s.grid.cells();
-        if storage.cells.len() < storage.submaps.len() * per {
-            return Err(MapFileError::TooLarge(
-                "submap cells",
-                (storage.submaps.len() * per) as u32,
-                storage.cells.len() as u32,
-            ));
-        }
-        storage.graph.clear();
-        storage.submaps.fill(SubmapMeta::EMPTY);
-        let read = self.read_sections(
+    pub fn read_into(self, storage: &mut MapStorage<'_>) -> Result<MapSummary, MapFileError> {
+        self.read_parts(
+            storage.grid,
             &mut storage.graph,
             storage.meta,
             storage.submaps,
             storage.cells,
-        );
+        )
+    }
+
+    /// [`MapReader::read_into`] the parts of a mapper's storage (for a mapper that then
+    /// starts from the map: [`MapperParts::localize`](crate::mapper::MapperParts::localize)).
+    ///
+    /// # Errors
+    /// As [`MapReader::read_into`].
+    pub fn read_into_parts(
+        self,
+        grid: GridParams,
+        parts: &mut crate::mapper::MapperParts<'_>,
+    ) -> Result<MapSummary, MapFileError> {
+        self.read_parts(
+            grid,
+            &mut parts.graph,
+            parts.meta,
+            parts.submaps,
+            parts.cells,
+        )
+    }
+
+    fn read_parts(
+        mut self,
+        grid: GridParams,
+        graph: &mut PoseGraph<'_>,
+        meta: &mut [NodeMeta],
+        submaps: &mut [SubmapMeta],
+        cells: &mut [i8],
+    ) -> Result<MapSummary, MapFileError> {
+        let s = self.summary;
+        if s.grid != grid {
+            return Err(MapFileError::GridMismatch);
+        }
+        let node_room = graph.node_capacity().min(meta.len());
+        fits("nodes", s.nodes, node_room)?;
+        fits("edges", s.edges, graph.edge_capacity())?;
+        fits("submap slots", s.submap_slots, submaps.len())?;
+        let per = s.grid.cells();
+        if cells.len() < submaps.len() * per {
+            return Err(MapFileError::TooLarge(
+                "submap cells",
+                (submaps.len() * per) as u32,
+                cells.len() as u32,
+            ));
+        }
+        graph.clear();
+        submaps.fill(SubmapMeta::EMPTY);
+        let read = self.read_sections(graph, meta, submaps, cells);
         if read.is_err() {
-            storage.graph.clear();
-            storage.submaps.fill(SubmapMeta::EMPTY);
+            graph.clear();
+            submaps.fill(SubmapMeta::EMPTY);
         }
         read.map(|()| s)
     }
