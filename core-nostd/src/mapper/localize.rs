@@ -5,33 +5,40 @@
 //! loading the map took. The real-time part runs as when mapping (preprocessing, LiDAR
 //! front-end, GPE: sections III-B.2 and III-C); what changes is what the GPE is tied to.
 //! Mapping ties it to the newest frame node; here the reference is the newest **fix**, a
-//! keyframe whose scan matched a saved submap, taken with the matched global pose as its
+//! keyframe whose scan matched the saved map, taken with the matched global pose as its
 //! estimate and its own front-end pose and travel ([`NodeTie`]). Eqs. 3-5 then compose the
 //! front-end motion since the fix onto the map exactly as they compose it onto a node, and a
 //! new fix pulls the pose as far as its uncertainty against the motion's allows, without a
 //! jump.
 //!
-//! **Tracking.** Every keyframe is matched in the saved submaps that contain the pose the last
-//! fix and the front-end motion since predict, nearest anchor first, by the windowed search
-//! and refinement of the loop closure (module `loops`, with all of its tests). The window is
-//! the motion model's uncertainty since the fix, clamped like the loop search's. A keyframe
-//! without a match is a miss; [`LOST_MISSES`] misses in a row (the robot was carried away, or
-//! the world changed around it), or an uncertainty since the last fix beyond the largest
-//! window, and tracking is lost.
+//! **Tracking.** Every keyframe is matched with the saved map around the pose the last fix and
+//! the front-end motion since predict: ICP against the occupied cells of the submaps nearest
+//! to it, in the world frame. A scan sees beyond one submap (a home's is 4 m across, its
+//! LiDAR reaches 10 m), so it is matched with all of the map it can see; the ICP refuses a
+//! match that fixes only some directions (a corridor), that fits badly, or that lands
+//! farther from the prediction than the motion model's uncertainty since the fix (clamped
+//! like the loop search's window). A scan that cannot tell (too little map, or a corridor)
+//! is no evidence either way; one that disagrees is a miss. [`LOST_MISSES`] misses in a row
+//! (the robot was carried away, or the world changed around it), or an uncertainty since
+//! the last fix beyond the largest window, and tracking is lost.
 //!
 //! **Global localization.** Without a fix (no initial pose, or tracking lost) a keyframe's
-//! scan is searched in whole submaps over every heading (the far search's branch and bound,
-//! module `frontend::far_csm`), submaps in turn, as many as [`GLOBAL_BUDGET`] candidate
-//! evaluations allow per keyframe. The best match is a **hypothesis** when no distinct pose
-//! scores within the far search's ambiguity ratio of it, in its submap or in another one
-//! searched for the same keyframe, when it refines like a windowed match and when it agrees
-//! with the submap's free space (the far loop search's tests, module `far`). It becomes the
-//! fix only after the next [`SUPPORT`] keyframes matched where it and the front-end motion put
-//! them; [`REFUTE`] misses first drop it. Until then the pose is the front-end's dead
-//! reckoning from the last one, marked as not localized.
+//! scan is kept and searched in every submap, over the keyframes that follow as far as
+//! [`GLOBAL_BUDGET`] candidate evaluations a keyframe allow: the far search's branch and
+//! bound (module `frontend::far_csm`) over the whole submap, once per quarter turn of heading
+//! ([`SECTORS`]). Each coarse match is refined by the ICP against the map and scored against
+//! the whole map (how many of the scan's points, near and far, land on walls of any
+//! submap). When every submap has been searched, the best place is the **hypothesis** if no
+//! distinct place (1 m or 0.3 rad away) scores within the far search's ambiguity ratio of it:
+//! a room that looks like another one from where the robot stands gives no fix yet. After
+//! tracking was lost to the growing uncertainty alone, the search keeps to that uncertainty
+//! around the dead-reckoned pose. A hypothesis becomes the fix only once the next [`SUPPORT`]
+//! keyframes matched where it and the front-end motion put them; [`REFUTE`] misses first
+//! drop it. Until then the pose is the front-end's dead reckoning from the last one, marked
+//! as not localized.
 
-use super::far::accept::{consistent_with_free_space, SUPPORT};
-use super::far::{AMBIGUITY, BASE_LEVEL, DISTINCT_THETA, DISTINCT_XY};
+use super::far::accept::SUPPORT;
+use super::far::{AMBIGUITY, DISTINCT_THETA, DISTINCT_XY};
 use super::loops::{submap_and_pyramid, MatchSource, Miss};
 use super::{
     FrameOutput, Mapper, MapperConfig, MapperError, MapperParts, MapperState, Probe, Section,
@@ -39,9 +46,11 @@ use super::{
 };
 use crate::frontend::far_csm::{FarCsmConfig, FarMatch, FarSearch, FarStep};
 use crate::frontend::grid::probability;
-use crate::frontend::lidar::FrontendStep;
+use crate::frontend::icp::MatchError;
+use crate::frontend::lidar::{FrontendStep, Travel};
 use crate::frontend::odometry::OdometryFusion;
-use crate::frontend::scan::MAX_POINTS;
+use crate::frontend::scan::{ScanPoint, MAX_POINTS};
+use crate::frontend::{align, IcpConfig, KdTree};
 use crate::frontend::{PointMap, Submap};
 use crate::geom::Se2;
 use crate::gpe::{GpeFrame, NodeTie};
@@ -53,10 +62,32 @@ pub const REFUTE: u8 = 2;
 /// Candidate evaluations of the global search per keyframe (whole submaps are searched; the
 /// last one started may overrun it).
 pub const GLOBAL_BUDGET: u64 = 400_000;
-/// Submaps a tracking match is tried in, nearest anchor first.
-const TRACK_CANDIDATES: usize = 3;
+/// Submaps whose occupied cells a scan is matched with, nearest anchor first.
+const MAP_SUBMAPS: usize = 16;
+/// Occupied cells for the match with the map: log-odds units at least this (probability ~0.73).
+const OCCUPIED: i8 = 10;
+/// Radius, in cells, of the normal fit of the map's points.
+const NORMAL_RADIUS: u8 = 2;
 /// Distinct places a global search keeps for one keyframe.
-const PLACES: usize = 4;
+const PLACES: usize = 8;
+/// Heading sectors each submap is searched in by the global search.
+pub const SECTORS: usize = 4;
+
+/// A global search of one keyframe's scan (kept as the far search's scan) over every submap,
+/// spread over the keyframes that follow.
+#[derive(Clone, Debug)]
+struct Sweep {
+    /// The keyframe's front-end pose and travel.
+    frontend: Se2,
+    travel: Travel,
+    /// Submap slots searched so far (the next one to search).
+    searched: usize,
+    /// The refined matches at distinct places, each with its score in the whole map.
+    places: heapless::Vec<(Se2, f32), PLACES>,
+    /// Where the robot can be, from the prior: the keyframe's pose predicted from it and
+    /// how far (metres, radians) it can be from there; `None`: anywhere.
+    region: Option<(Se2, f64, f64)>,
+}
 
 /// What localization has done so far.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -96,8 +127,11 @@ pub(crate) struct LocalizeState {
     support: u8,
     /// Keyframes in a row without a match.
     misses: u8,
-    /// Submap slot the global search continues with.
-    next_slot: usize,
+    /// The global search under way.
+    sweep: Option<Sweep>,
+    /// The last fix when tracking was lost to the growing uncertainty (not to a scan that
+    /// disagreed with the map): the next global search stays within that uncertainty.
+    prior: Option<NodeTie>,
     search: FarSearch,
     counters: LocalizeCounters,
 }
@@ -111,7 +145,8 @@ impl LocalizeState {
             tracking: false,
             support: 0,
             misses: 0,
-            next_slot: 0,
+            sweep: None,
+            prior: None,
             search: FarSearch::new(),
             counters: LocalizeCounters {
                 keyframes: 0,
@@ -253,28 +288,46 @@ impl Mapper<'_> {
             xy.clamp(lc.window_min, lc.window_max),
             theta.clamp(lc.angle_min, lc.angle_max),
         );
-        let matched = self.match_saved(&predicted, window);
-        let miss = self.st.loops.last_miss;
+        // A match farther from the prediction than its uncertainty allows is not believed.
+        let matched = self
+            .match_map(MatchSource::Scan, &predicted, false)
+            .and_then(|p| {
+                let d = predicted.between(&p);
+                let inside = libm::hypot(d.x, d.y) <= window.0 && libm::fabs(d.theta) <= window.1;
+                if inside {
+                    Ok(p)
+                } else {
+                    debug!(
+                        "map match {} m, {} rad from the prediction",
+                        libm::hypot(d.x, d.y),
+                        d.theta
+                    );
+                    Err(Miss::Mismatch)
+                }
+            });
         let l = self.st.localize.as_mut()?;
-        let Some(estimate) = matched else {
-            // A scan that cannot tell is no evidence against the fix: only the growing
-            // uncertainty then ends tracking.
-            if miss == Miss::Uninformative && !beyond {
-                l.counters.uninformative += 1;
+        let estimate = match matched {
+            Ok(estimate) => estimate,
+            Err(miss) => {
+                // A scan that cannot tell is no evidence against the fix: only the growing
+                // uncertainty then ends tracking.
+                if miss == Miss::Uninformative && !beyond {
+                    l.counters.uninformative += 1;
+                    return None;
+                }
+                l.counters.misses += 1;
+                l.misses = l.misses.saturating_add(1);
+                if !tracking && (l.misses >= REFUTE || beyond) {
+                    l.fix = None;
+                    l.counters.refuted += 1;
+                } else if tracking && (l.misses >= LOST_MISSES || beyond) {
+                    debug!("localization lost after {} misses", l.misses);
+                    l.fix = None;
+                    l.tracking = false;
+                    l.counters.lost += 1;
+                }
                 return None;
             }
-            l.counters.misses += 1;
-            l.misses = l.misses.saturating_add(1);
-            if !tracking && (l.misses >= REFUTE || beyond) {
-                l.fix = None;
-                l.counters.refuted += 1;
-            } else if tracking && (l.misses >= LOST_MISSES || beyond) {
-                debug!("localization lost after {} misses", l.misses);
-                l.fix = None;
-                l.tracking = false;
-                l.counters.lost += 1;
-            }
-            return None;
         };
         l.counters.matches += 1;
         l.misses = 0;
@@ -294,123 +347,233 @@ impl Mapper<'_> {
         Some(estimate)
     }
 
-    /// The global pose of the current scan matched in the saved submaps that contain
-    /// `predicted`, nearest anchor first, within `window` (metres, radians). Without a match,
-    /// `loops.last_miss` says why: a mismatch when any submap disagreed.
-    fn match_saved(&mut self, predicted: &Se2, window: (f64, f64)) -> Option<Se2> {
-        let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
+    /// ICP of the scan of `source` (robot frame) against the saved map around the world pose
+    /// `seed`: the occupied cells of the [`MAP_SUBMAPS`] submaps whose anchors are nearest to
+    /// it, as world points (as many as the reference storage holds). A scan sees far beyond
+    /// one submap (a home's is 4 m across, its LiDAR reaches 10 m), so it is matched with all
+    /// of the map it can see. The world pose when the match is good; else why not.
+    ///
+    /// A good match has a small residual over enough points. With `whole`, most of the scan
+    /// must also fall on the map (the loop search's fitness): a place found without a prior
+    /// must show it is the place. Tracking, seeded by the prediction and bounded by its
+    /// uncertainty, accepts a scan that sees more than the map holds (a part of the building
+    /// not mapped, furniture moved in).
+    fn match_map(&mut self, source: MatchSource, seed: &Se2, whole: bool) -> Result<Se2, Miss> {
+        let reach =
+            self.cfg.max_range as f64 + self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64;
         // (distance to the anchor, slot, anchor pose), nearest first.
-        let mut near = heapless::Vec::<(f64, usize, Se2), TRACK_CANDIDATES>::new();
+        let mut near = heapless::Vec::<(f64, usize, Se2), MAP_SUBMAPS>::new();
         for (slot, m) in self.submaps.iter().enumerate().filter(|(_, m)| m.in_use) {
             let Some(anchor) = self.keyframe_pose(m.anchor_serial) else {
                 continue;
             };
-            let local = anchor.between(predicted);
-            if libm::fabs(local.x) > half || libm::fabs(local.y) > half {
+            let d = libm::hypot(anchor.x - seed.x, anchor.y - seed.y);
+            if d > reach {
                 continue;
             }
-            let d = libm::hypot(local.x, local.y);
             let at = near.iter().position(|c| c.0 > d).unwrap_or(near.len());
-            if at < TRACK_CANDIDATES {
+            if at < MAP_SUBMAPS {
                 if near.is_full() {
                     near.pop();
                 }
                 let _ = near.insert(at, (d, slot, anchor));
             }
         }
-        let mut miss = Miss::Uninformative;
+        let per = self.cells_per_submap;
+        let mut n = 0;
         for &(_, slot, anchor) in &near {
-            let seed = anchor.between(predicted);
-            if let Some((z, _)) =
-                self.match_in_submap(slot, MatchSource::Scan, &seed, window.0, window.1)
-            {
-                return Some(anchor.compose(&z));
-            }
-            if self.st.loops.last_miss == Miss::Mismatch {
-                miss = Miss::Mismatch;
+            let (Some(cells), Some(out)) = (
+                self.cells.get(slot * per..(slot + 1) * per),
+                self.reference.get_mut(n..),
+            ) else {
+                break;
+            };
+            if let Ok(grid) = Submap::from_cells(anchor, self.cfg.grid, cells) {
+                n += grid.occupied_points(OCCUPIED, NORMAL_RADIUS, out);
             }
         }
-        self.st.loops.last_miss = miss;
-        None
+        let points: &[ScanPoint] = match source {
+            MatchSource::Scan => self.scan.as_slice(),
+            MatchSource::Far => self.st.far.scan(),
+        };
+        let icp = IcpConfig {
+            allow_degenerate: false,
+            degeneracy_ratio: self.cfg.loops.degeneracy_ratio,
+            ..self.cfg.icp
+        };
+        if n < icp.min_points as usize || points.len() < icp.min_points as usize {
+            return Err(Miss::Uninformative);
+        }
+        let tree = KdTree::build(self.reference.get_mut(..n).ok_or(Miss::Uninformative)?);
+        let lc = self.cfg.loops;
+        let r = match align(points, &tree, seed, &icp) {
+            Ok(r) => r,
+            Err(MatchError::Degenerate { .. }) => return Err(Miss::Uninformative),
+            Err(e) => {
+                debug!("map match failed: {}", e);
+                return Err(Miss::Mismatch);
+            }
+        };
+        // The fitness counts the points within two cells of the map's walls (the ICP's own
+        // correspondences reach farther, to converge from the prediction), and without
+        // `whole` only among the points the map can judge: those on cells it observed.
+        let tight = IcpConfig {
+            max_correspondence: 2.0 * self.cfg.grid.resolution,
+            max_iterations: 1,
+            ..icp
+        };
+        let close = align(points, &tree, &r.pose, &tight).map_or(0, |t| t.inliers);
+        let judged = if whole {
+            points.len() as u32
+        } else {
+            self.map_fit(source, &r.pose).1
+        };
+        let fitness = close as f32 / judged.max(1) as f32;
+        match r {
+            r if r.inliers < icp.min_points || judged < icp.min_points => Err(Miss::Uninformative),
+            r if fitness >= lc.min_fitness && r.rms <= lc.max_rms => Ok(r.pose),
+            r => {
+                debug!(
+                    "map match refused: fitness {} rms {} ({} points, {} judged, {} reference)",
+                    fitness,
+                    r.rms,
+                    points.len(),
+                    judged,
+                    n
+                );
+                Err(Miss::Mismatch)
+            }
+        }
     }
 
-    /// Searches the current scan in whole submaps, in turn, up to the keyframe's budget; a
-    /// unique, refined match consistent with free space becomes the hypothesis.
+    /// Continues the global search, up to the keyframe's budget: a search begins with this
+    /// keyframe's scan and covers every submap; when it has, the best place, if unique in the
+    /// whole map, becomes the hypothesis (tied to the keyframe the search began with).
     fn global_search(&mut self, front: &FrontendStep) {
         let lc = self.cfg.loops;
         let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
         let config = FarCsmConfig {
-            base_level: BASE_LEVEL.min(lc.pyramid_levels.saturating_sub(2)),
+            base_level: 1,
             min_score: lc.min_score,
             ..FarCsmConfig::DEFAULT
         };
-        let slots = self.submaps.len();
-        // The refined matches at distinct places, each with its score in the whole map.
-        let mut places = heapless::Vec::<(Se2, f32), PLACES>::new();
-        let mut spent = 0u64;
-        for _ in 0..slots {
-            if spent >= GLOBAL_BUDGET {
-                break;
+        let travel = self.st.frontend.travel();
+        let Some(l) = self.st.localize.as_mut() else {
+            return;
+        };
+        let prior = l.prior;
+        let mut sweep = match l.sweep.take() {
+            Some(s) => s,
+            None => {
+                self.st.far.keep_scan(self.scan.as_slice());
+                let region = prior.map(|p| {
+                    let (xy, theta) = self.uncertainty(&travel.since(&p.travel));
+                    let centre = p.estimate.compose(&p.frontend.between(&front.pose));
+                    (centre, xy, theta)
+                });
+                Sweep {
+                    frontend: front.pose,
+                    travel,
+                    searched: 0,
+                    places: heapless::Vec::new(),
+                    region,
+                }
             }
-            let Some(l) = self.st.localize.as_mut() else {
-                return;
-            };
-            let slot = l.next_slot % slots;
-            l.next_slot = (slot + 1) % slots;
+        };
+        let slots = self.submaps.len();
+        let mut spent = 0u64;
+        while spent < GLOBAL_BUDGET && sweep.searched < slots {
+            let slot = sweep.searched;
+            sweep.searched += 1;
             let Some(m) = self.submaps.get(slot).filter(|m| m.in_use).copied() else {
                 continue;
             };
             let Some(anchor) = self.keyframe_pose(m.anchor_serial) else {
                 continue;
             };
-            let (found, evaluated) = self.search_whole(slot, &config, half);
+            let reach = half * core::f64::consts::SQRT_2;
+            if sweep
+                .region
+                .is_some_and(|(c, xy, _)| libm::hypot(anchor.x - c.x, anchor.y - c.y) > xy + reach)
+            {
+                continue;
+            }
+            let (found, evaluated) = self.search_whole(slot, &anchor, &config, half);
             spent += evaluated.max(1);
-            // A place that scores as well elsewhere in its submap is no evidence.
-            let Some(f) = found.filter(|f| f.runner_up < AMBIGUITY * f.score) else {
-                continue;
-            };
-            let Some(z) = self.refine_global(slot, &f) else {
-                continue;
-            };
-            let world = anchor.compose(&z);
-            let score = self.map_score(&world);
-            add_place(&mut places, world, score);
+            for f in found {
+                self.add_global_candidate(&mut sweep, &f);
+            }
         }
-        // The best place, unless a distinct one fits the whole map nearly as well (a room
-        // like another, or one whose submap is too small to see what tells them apart).
-        let Some(&(estimate, best)) = places.iter().max_by(|a, b| a.1.total_cmp(&b.1)) else {
+        let hypothesis = if sweep.searched < slots {
+            None
+        } else {
+            for p in &sweep.places {
+                debug!(
+                    "global search: place {} {} {} fits the map {}",
+                    p.0.x, p.0.y, p.0.theta, p.1
+                );
+            }
+            unique_place(&sweep.places)
+        };
+        let Some(l) = self.st.localize.as_mut() else {
             return;
         };
-        let rival = places
-            .iter()
-            .filter(|p| distinct(&p.0, &estimate))
-            .map(|p| p.1)
-            .fold(0.0f32, f32::max);
-        if rival >= AMBIGUITY * best {
+        if sweep.searched < slots {
+            l.sweep = Some(sweep);
             return;
         }
-        let travel = self.st.frontend.travel();
-        if let Some(l) = self.st.localize.as_mut() {
-            l.fix = Some(NodeTie {
-                estimate,
-                frontend: front.pose,
-                travel,
-            });
-            l.support = 0;
-            l.misses = 0;
-            l.counters.hypotheses += 1;
-        }
+        // A search within the prior's region that found nothing widens to the whole map.
+        l.prior = None;
+        let Some(estimate) = hypothesis else {
+            return;
+        };
+        l.fix = Some(NodeTie {
+            estimate,
+            frontend: sweep.frontend,
+            travel: sweep.travel,
+        });
+        l.support = 0;
+        l.misses = 0;
+        l.counters.hypotheses += 1;
     }
 
-    /// How well the current scan at the world pose `world` fits the whole saved map: the mean
-    /// over its points of the highest occupancy probability near the point (its cell and the
-    /// eight around it) in any submap, 0 where no submap reaches.
-    fn map_score(&self, world: &Se2) -> f32 {
+    /// A coarse match `f` (world frame) of the sweep's scan: refined by ICP against the map
+    /// around it and, when it lies where the prior allows, kept among the sweep's places with
+    /// its score in the whole map.
+    fn add_global_candidate(&mut self, sweep: &mut Sweep, f: &FarMatch) {
+        let Ok(world) = self.match_map(MatchSource::Far, &f.pose, true) else {
+            return;
+        };
+        let outside = sweep.region.is_some_and(|(c, xy, theta)| {
+            let d = c.between(&world);
+            libm::hypot(d.x, d.y) > xy || libm::fabs(d.theta) > theta
+        });
+        if outside {
+            return;
+        }
+        let (score, _) = self.map_fit(MatchSource::Far, &world);
+        debug!(
+            "global candidate {} {} {}: coarse {} fits the map {}",
+            world.x, world.y, world.theta, f.score, score
+        );
+        add_place(&mut sweep.places, world, score);
+    }
+
+    /// How well the scan of `source` at the world pose `world` fits the whole saved map: the
+    /// mean over its points of the highest occupancy probability near the point (its cell and
+    /// the eight around it) in any submap, 0 where no submap reaches; and how many of its
+    /// points land where the map observed anything (hit or seen through) near them.
+    fn map_fit(&self, source: MatchSource, world: &Se2) -> (f32, u32) {
         let per = self.cells_per_submap;
         let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
         let reach = self.cfg.max_range as f64 + half * core::f64::consts::SQRT_2;
         let mut best = [0.0f32; MAX_POINTS];
-        let n = self.scan.len().min(MAX_POINTS);
+        let mut seen = [false; MAX_POINTS];
+        let scan: &[ScanPoint] = match source {
+            MatchSource::Scan => self.scan.as_slice(),
+            MatchSource::Far => self.st.far.scan(),
+        };
+        let n = scan.len().min(MAX_POINTS);
         for (slot, m) in self.submaps.iter().enumerate().filter(|(_, m)| m.in_use) {
             let Some(anchor) = self.keyframe_pose(m.anchor_serial) else {
                 continue;
@@ -427,7 +590,7 @@ impl Mapper<'_> {
             let pose = anchor.between(world);
             let (c, s) = (libm::cos(pose.theta) as f32, libm::sin(pose.theta) as f32);
             let (tx, ty) = (pose.x as f32, pose.y as f32);
-            for (q, b) in self.scan.iter().zip(best.iter_mut()) {
+            for ((q, b), o) in scan.iter().zip(best.iter_mut()).zip(seen.iter_mut()) {
                 let p = [tx + c * q.p[0] - s * q.p[1], ty + s * q.p[0] + c * q.p[1]];
                 let g = grid.local_to_cell(p);
                 let (ix, iy) = (libm::floorf(g[0]) as i32, libm::floorf(g[1]) as i32);
@@ -435,34 +598,31 @@ impl Mapper<'_> {
                     for dx in -1..=1 {
                         if let Some(v) = grid.cell(ix + dx, iy + dy) {
                             *b = b.max(probability(v));
+                            *o |= v != 0;
                         }
                     }
                 }
             }
         }
         if n == 0 {
-            return 0.0;
+            return (0.0, 0);
         }
-        best.iter().take(n).sum::<f32>() / n as f32
+        let observed = seen.iter().take(n).filter(|&&o| o).count() as u32;
+        (best.iter().take(n).sum::<f32>() / n as f32, observed)
     }
 
-    /// A coarse whole-submap match refined like a windowed one and checked against the
-    /// submap's free space; the scan's pose in the submap's frame.
-    fn refine_global(&mut self, slot: usize, f: &FarMatch) -> Option<Se2> {
-        let (z, _) =
-            self.match_in_submap(slot, MatchSource::Scan, &f.pose, f.cell, f.angular_step)?;
-        let (inside, conflicting) = self.free_space_conflicts(slot, MatchSource::Scan, &z);
-        consistent_with_free_space(inside, conflicting).then_some(z)
-    }
-
-    /// The far search of the current scan over the whole submap in `slot` (every heading),
-    /// run to its end; the match in the submap's frame, and the candidates evaluated.
+    /// The far search of the kept scan over the whole submap in `slot`, one search per
+    /// quarter turn of heading ([`SECTORS`]: a room that looks alike turned by a quarter or
+    /// half turn gives each its own candidate, for the whole map to tell apart), each run to
+    /// its end; the matches in the world frame, and the candidates evaluated.
     fn search_whole(
         &mut self,
         slot: usize,
+        anchor: &Se2,
         config: &FarCsmConfig,
         half: f64,
-    ) -> (Option<FarMatch>, u64) {
+    ) -> (heapless::Vec<FarMatch, SECTORS>, u64) {
+        let mut found = heapless::Vec::new();
         let Some((submap, pyramid)) = submap_and_pyramid(
             self.cells,
             self.submaps,
@@ -471,10 +631,10 @@ impl Mapper<'_> {
             &self.cfg,
             slot,
         ) else {
-            return (None, 0);
+            return (found, 0);
         };
         let Some(l) = self.st.localize.as_mut() else {
-            return (None, 0);
+            return (found, 0);
         };
         l.counters.global_searches += 1;
         // Only the points within half a submap of the robot: with the robot near the submap's
@@ -482,29 +642,42 @@ impl Mapper<'_> {
         // farther ones would land outside and score nothing even at the true pose.
         let r2 = (half * half) as f32;
         self.loop_scan.clear();
-        for q in self
-            .scan
-            .iter()
-            .filter(|q| q.p[0] * q.p[0] + q.p[1] * q.p[1] <= r2)
-        {
-            let _ = self.loop_scan.push(*q);
+        for q in self.st.far.scan() {
+            if q.p[0] * q.p[0] + q.p[1] * q.p[1] <= r2 {
+                let _ = self.loop_scan.push(*q);
+            }
         }
         let reach = self.cfg.submap_length.min(half);
-        if l.search
-            .start(self.loop_scan.as_slice(), &Se2::IDENTITY, reach, config)
-            .is_err()
-        {
-            return (None, 0);
-        }
-        let found = loop {
-            match l.search.step(&submap, &pyramid, u32::MAX) {
-                Ok(FarStep::Working) => continue,
-                Ok(FarStep::Done(found)) => break found,
-                Err(_) => break None,
-            }
+        let sector = core::f64::consts::TAU / SECTORS as f64;
+        let config = FarCsmConfig {
+            window_theta: 0.5 * sector,
+            ..*config
         };
-        let evaluated = l.search.evaluated();
-        l.search.cancel();
+        let mut evaluated = 0;
+        for k in 0..SECTORS {
+            let seed = Se2::new(0.0, 0.0, k as f64 * sector);
+            if l.search
+                .start(self.loop_scan.as_slice(), &seed, reach, &config)
+                .is_err()
+            {
+                break;
+            }
+            let m = loop {
+                match l.search.step(&submap, &pyramid, u32::MAX) {
+                    Ok(FarStep::Working) => continue,
+                    Ok(FarStep::Done(m)) => break m,
+                    Err(_) => break None,
+                }
+            };
+            evaluated += l.search.evaluated();
+            l.search.cancel();
+            if let Some(m) = m {
+                let _ = found.push(FarMatch {
+                    pose: anchor.compose(&m.pose),
+                    ..m
+                });
+            }
+        }
         (found, evaluated)
     }
 }
@@ -527,6 +700,18 @@ fn add_place(places: &mut heapless::Vec<(Se2, f32), PLACES>, world: Se2, score: 
             *low = (world, score);
         }
     }
+}
+
+/// The best scoring of `places`, unless a distinct one fits the whole map nearly as well (a
+/// room like another, or one whose submap is too small to see what tells them apart).
+fn unique_place(places: &[(Se2, f32)]) -> Option<Se2> {
+    let &(best, score) = places.iter().max_by(|a, b| a.1.total_cmp(&b.1))?;
+    let rival = places
+        .iter()
+        .filter(|p| distinct(&p.0, &best))
+        .map(|p| p.1)
+        .fold(0.0f32, f32::max);
+    (rival < AMBIGUITY * score).then_some(best)
 }
 
 /// Two world poses are distinct places (the far search's thresholds).

@@ -872,16 +872,23 @@ fn feed_frames(
     range: core::ops::Range<usize>,
     bias: f64,
 ) -> Vec<FrameOutput> {
+    feed_visits(mapper, &range.collect::<Vec<_>>(), bias)
+}
+
+/// Feeds the path's frames in the order of `frames` (stamped by their place in it); where
+/// two consecutive entries are not neighbours on the path the robot was carried from one to
+/// the other, and its odometry saw nothing.
+fn feed_visits(mapper: &mut Mapper<'_>, frames: &[usize], bias: f64) -> Vec<FrameOutput> {
     let truth = path();
     let mut odom = Se2::IDENTITY;
     let mut outputs = Vec::new();
-    for i in range.clone() {
-        if i > range.start {
+    for (k, &i) in frames.iter().enumerate() {
+        if k > 0 && frames[k - 1] + 1 == i {
             let inc = truth[i - 1].between(&truth[i]);
             let d = libm::hypot(inc.x, inc.y);
             odom = odom.compose(&Se2::new(inc.x, inc.y, inc.theta + d * bias));
         }
-        let t = 1_000_000_000 + i as i64 * 100_000_000;
+        let t = 1_000_000_000 + (frames[0] + k) as i64 * 100_000_000;
         mapper.push_odometry(t, odom).expect("odometry in order");
         let ranges = scan_at(&truth[i]);
         let input = ScanInput {
@@ -930,6 +937,17 @@ fn localize_second_lap(
     start: usize,
     initial: bool,
 ) -> (Vec<FrameOutput>, Vec<f64>, LocalizeCounters) {
+    localize_visits(map, &(start..path().len()).collect::<Vec<_>>(), initial)
+}
+
+/// Localizes the visits of `frames` (see `feed_visits`) in the saved map: the outputs, the
+/// error of each against the truth in the map's frame (the first pose's), the counters.
+fn localize_visits(
+    map: &[u8],
+    frames: &[usize],
+    initial: bool,
+) -> (Vec<FrameOutput>, Vec<f64>, LocalizeCounters) {
+    let start = frames[0];
     let truth = path();
     let to_map = |p: &Se2| truth[0].between(p);
     let mut res: Box<TestResources> = Box::default();
@@ -943,15 +961,15 @@ fn localize_second_lap(
     let initial = initial.then(|| to_map(&truth[start]));
     let mut mapper = parts.localize(config(), initial).expect("fits");
     // The odometry of `run_with`, 2 degrees of heading bias per metre.
-    let outputs = feed_frames(&mut mapper, start..truth.len(), 0.035);
+    let outputs = feed_visits(&mut mapper, frames, 0.035);
     // Nothing was added to the map.
     assert_eq!(mapper.graph().node_count(), nodes);
     assert_eq!(mapper.stats().keyframes, 0);
     let errors = outputs
         .iter()
-        .zip(&truth[start..])
-        .map(|(o, t)| {
-            let e = to_map(t).between(&o.pose);
+        .zip(frames)
+        .map(|(o, &i)| {
+            let e = to_map(&truth[i]).between(&o.pose);
             libm::hypot(e.x, e.y)
         })
         .collect();
@@ -1001,5 +1019,48 @@ fn a_saved_map_localizes_the_next_lap_from_nowhere() {
             worst < map_error + 0.02,
             "worst error {worst} m after the fix (map {map_error} m), {c:?}"
         );
+    });
+}
+
+#[test]
+fn a_robot_carried_elsewhere_is_lost_then_found_again() {
+    with_stack(|| {
+        let (map, map_error) = saved_first_lap();
+        let lap = path().len() / 2;
+        // Tracked for 6 s, then carried a third of the lap ahead.
+        let jump = lap + 67;
+        let frames: Vec<usize> = (lap + 7..jump)
+            .chain(jump + lap / 3..path().len())
+            .collect();
+        let (outputs, errors, c) = localize_visits(&map, &frames, true);
+        let carried = jump - (lap + 7);
+        assert!(outputs[..carried].iter().all(|o| o.localized), "{c:?}");
+        assert!(
+            errors[..carried].iter().all(|&e| e < map_error + 0.02),
+            "{c:?}"
+        );
+        // Lost, then found again at the right place within 10 s of being carried (this room
+        // is nearly symmetric, and the scan where the robot was put down fits it turned: 6.9 s
+        // when this test was written).
+        let lost = outputs[carried..].iter().position(|o| !o.localized);
+        let Some(lost) = lost else {
+            panic!("never lost: {c:?}");
+        };
+        let back = outputs[carried + lost..].iter().position(|o| o.localized);
+        let Some(back) = back else {
+            panic!("never found again: {c:?}");
+        };
+        assert!(
+            lost + back < 100,
+            "found again after {} frames, {c:?}",
+            lost + back
+        );
+        let found = carried + lost + back;
+        let worst = errors[found..].iter().copied().fold(0.0, f64::max);
+        assert!(
+            worst < map_error + 0.02,
+            "worst error {worst} m after, {c:?}"
+        );
+        assert_eq!((c.fixes, c.lost), (2, 1), "{c:?}");
     });
 }

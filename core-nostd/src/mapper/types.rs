@@ -192,7 +192,7 @@ pub struct FrameOutput {
     pub localized: bool,
 }
 
-/// The parts of [`Mapper::push_scan`], in the order they run, for a caller that measures them
+/// The parts of [`Mapper::push_scan`](super::Mapper::push_scan), in the order they run, for a caller that measures them
 /// (the firmware counts the instructions of each under QEMU).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Section {
@@ -208,7 +208,7 @@ pub enum Section {
     Done,
 }
 
-/// Told when [`Mapper::push_scan_probed`] enters each [`Section`]. It must not touch the
+/// Told when [`Mapper::push_scan_probed`](super::Mapper::push_scan_probed) enters each [`Section`]. It must not touch the
 /// mapper; the unit type is the probe that does nothing.
 pub trait Probe {
     /// `section` starts now (and the previous one ended).

@@ -50,6 +50,10 @@ pub struct MapArgs {
     /// Stop after this many scans.
     #[arg(long)]
     pub max_scans: Option<u64>,
+    /// Drop the input's first SECONDS of data (by time stamp): start anywhere along a
+    /// recording.
+    #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
+    pub skip: f64,
     /// Time stamps that step back: `file-order` gives the mapper the stamp moved to 1 µs after
     /// the previous one (the outputs keep the original; counted as `stamps_repaired`),
     /// `reject` lets the mapper reject the event (counted).
@@ -129,7 +133,10 @@ fn execute(
     if args.deterministic {
         config.run.deterministic = true;
     }
-    let input = args.input_args.open(args.input.as_deref())?;
+    let input = args
+        .input_args
+        .open(args.input.as_deref())?
+        .skip_seconds(args.skip);
     let backend_delay_s = args.backend_delay.unwrap_or(config.run.backend_delay_s);
     let settings = MapSettings {
         profile,

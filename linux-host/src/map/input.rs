@@ -271,6 +271,9 @@ pub struct InputStream {
     last: [Option<i64>; 5],
     size: InputSize,
     done: bool,
+    /// Events this long after the input's first one are dropped, ns (`--skip`).
+    skip_ns: i64,
+    first: Option<i64>,
 }
 
 impl std::fmt::Debug for InputStream {
@@ -290,6 +293,8 @@ impl InputStream {
             last: [None; 5],
             size,
             done: false,
+            skip_ns: 0,
+            first: None,
         }
     }
 
@@ -320,6 +325,29 @@ impl Iterator for InputStream {
     type Item = Result<SensorEvent>;
 
     fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            let item = self.next_read()?;
+            let Ok(event) = &item else {
+                return Some(item);
+            };
+            let first = *self.first.get_or_insert(event.t_ns());
+            if event.t_ns() >= first.saturating_add(self.skip_ns) {
+                return Some(item);
+            }
+        }
+    }
+}
+
+impl InputStream {
+    /// Drops the events of the input's first `seconds` (by their stamps), as if it started
+    /// there: a run that begins anywhere along a recorded route.
+    pub fn skip_seconds(mut self, seconds: f64) -> Self {
+        self.skip_ns = (seconds.max(0.0) * 1e9) as i64;
+        self
+    }
+
+    /// The next event as read, counted.
+    fn next_read(&mut self) -> Option<Result<SensorEvent>> {
         if self.done {
             return None;
         }

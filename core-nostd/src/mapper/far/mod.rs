@@ -164,6 +164,17 @@ impl FarState {
         &self.scan
     }
 
+    /// Keeps `points` (evenly subsampled) as the scan matched with [`MatchSource::Far`]
+    /// (super::loops::MatchSource::Far), for the localization's global search (the far loop
+    /// search does not run while localizing).
+    pub(in crate::mapper) fn keep_scan(&mut self, points: &[ScanPoint]) {
+        self.scan.clear();
+        let stride = points.len().div_ceil(FAR_POINTS).max(1);
+        for q in points.iter().step_by(stride) {
+            let _ = self.scan.push(*q);
+        }
+    }
+
     /// No search planned or running.
     fn idle(&self) -> bool {
         self.current.is_none() && self.queue.is_empty() && self.found.is_none()
