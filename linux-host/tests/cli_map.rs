@@ -582,13 +582,11 @@ fn a_bag_with_a_camera_has_its_images_tracked_and_the_lidar_map_unchanged() {
     }
 }
 
-#[test]
-fn a_saved_map_reads_back_whole_and_a_damaged_one_is_refused_with_its_reason() {
-    let tmp = tempfile::tempdir().expect("tempdir");
-    let (dir, file) = (tmp.path().join("run"), tmp.path().join("home.cloimap"));
-    let out = map_home("40", &dir)
+/// Maps 40 s of the simulated home into `dir`, saving the map to `file`.
+fn save_home(dir: &Path, file: &Path) {
+    let out = map_home("40", dir)
         .arg("--save")
-        .arg(&file)
+        .arg(file)
         .output()
         .expect("cloi runs");
     assert!(
@@ -596,6 +594,13 @@ fn a_saved_map_reads_back_whole_and_a_damaged_one_is_refused_with_its_reason() {
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
+}
+
+#[test]
+fn a_saved_map_reads_back_whole_and_a_damaged_one_is_refused_with_its_reason() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (dir, file) = (tmp.path().join("run"), tmp.path().join("home.cloimap"));
+    save_home(&dir, &file);
     let shown = tmp.path().join("shown");
     let show = |path: &Path, out: Option<&Path>| {
         let mut c = Command::new(env!("CARGO_BIN_EXE_cloi"));
@@ -646,16 +651,7 @@ fn a_saved_map_reads_back_whole_and_a_damaged_one_is_refused_with_its_reason() {
 fn a_saved_home_is_localized_in_by_another_run_from_a_given_pose_and_from_nowhere() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let (dir, file) = (tmp.path().join("map"), tmp.path().join("home.cloimap"));
-    let out = map_home("40", &dir)
-        .arg("--save")
-        .arg(&file)
-        .output()
-        .expect("cloi runs");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    save_home(&dir, &file);
     let mapped = tum_rows(&dir.join("trajectory.tum"));
     let localize = |name: &str, initial: Option<&str>| {
         let out_dir = tmp.path().join(name);
