@@ -31,14 +31,15 @@
 //! submap). When every submap has been searched, the best place is the **hypothesis** if no
 //! distinct place (1 m or 0.3 rad away) scores within the far search's ambiguity ratio of it:
 //! a room that looks like another one from where the robot stands gives no fix yet. After
-//! tracking was lost to the growing uncertainty alone, the search keeps to that uncertainty
-//! around the dead-reckoned pose. A hypothesis becomes the fix only once the next [`SUPPORT`]
+//! tracking was lost, the first search keeps to the uncertainty around the dead-reckoned pose
+//! (a LiDAR outage, a slip: the robot is still there), the next ones to the whole map (it
+//! was carried away). A hypothesis becomes the fix only once the next [`SUPPORT`]
 //! keyframes matched where it and the front-end motion put them; [`REFUTE`] misses first
 //! drop it. Until then the pose is the front-end's dead reckoning from the last one, marked
 //! as not localized.
 
 use super::far::accept::SUPPORT;
-use super::far::{AMBIGUITY, DISTINCT_THETA, DISTINCT_XY};
+use super::far::{AMBIGUITY, BASE_LEVEL, DISTINCT_THETA, DISTINCT_XY};
 use super::loops::{submap_and_pyramid, MatchSource, Miss};
 use super::{
     FrameOutput, Mapper, MapperConfig, MapperError, MapperParts, MapperState, Probe, Section,
@@ -129,8 +130,8 @@ pub(crate) struct LocalizeState {
     misses: u8,
     /// The global search under way.
     sweep: Option<Sweep>,
-    /// The last fix when tracking was lost to the growing uncertainty (not to a scan that
-    /// disagreed with the map): the next global search stays within that uncertainty.
+    /// The last fix when tracking was lost: the next global search stays within the
+    /// uncertainty since.
     prior: Option<NodeTie>,
     search: FarSearch,
     counters: LocalizeCounters,
@@ -284,28 +285,41 @@ impl Mapper<'_> {
         let (xy, theta) = self.uncertainty(&travel.since(&fix.travel));
         let predicted = fix.estimate.compose(&fix.frontend.between(&front.pose));
         let beyond = xy > lc.window_max || theta > lc.angle_max;
-        let window = (
-            xy.clamp(lc.window_min, lc.window_max),
-            theta.clamp(lc.angle_min, lc.angle_max),
-        );
-        // A match farther from the prediction than its uncertainty allows is not believed.
-        let matched = self
-            .match_map(MatchSource::Scan, &predicted, false)
-            .and_then(|p| {
-                let d = predicted.between(&p);
-                let inside = libm::hypot(d.x, d.y) <= window.0 && libm::fabs(d.theta) <= window.1;
-                if inside {
-                    Ok(p)
-                } else {
-                    debug!(
-                        "map match {} m, {} rad from the prediction",
-                        libm::hypot(d.x, d.y),
-                        d.theta
-                    );
-                    Err(Miss::Mismatch)
-                }
-            });
+        // A match farther from the prediction than its uncertainty (at least the loop search's
+        // smallest window) allows is not believed. Unlike the loop search's window this is
+        // not clamped above: after a LiDAR outage the dead reckoning may be a metre off, and
+        // the ICP, seeded there, only finds the map nearby.
+        let window = (xy.max(lc.window_min), theta.max(lc.angle_min));
+        let matched = self.match_map(MatchSource::Scan, &predicted);
         let l = self.st.localize.as_mut()?;
+        // Tracking, a good match outside the window says the prediction is off more than the
+        // motion model allows (a wheel slip, a gyro drifting through a LiDAR outage): it is
+        // not believed at once, but proposed like a global match, for the next keyframes to
+        // confirm.
+        if let Ok(p) = matched {
+            let d = predicted.between(&p);
+            if libm::hypot(d.x, d.y) > window.0 || libm::fabs(d.theta) > window.1 {
+                debug!(
+                    "map match {} m, {} rad from the prediction",
+                    libm::hypot(d.x, d.y),
+                    d.theta
+                );
+                l.counters.misses += 1;
+                if tracking {
+                    l.tracking = false;
+                    l.counters.lost += 1;
+                }
+                l.fix = Some(NodeTie {
+                    estimate: p,
+                    frontend: front.pose,
+                    travel,
+                });
+                l.support = 0;
+                l.misses = 0;
+                l.counters.hypotheses += 1;
+                return None;
+            }
+        }
         let estimate = match matched {
             Ok(estimate) => estimate,
             Err(miss) => {
@@ -322,6 +336,11 @@ impl Mapper<'_> {
                     l.counters.refuted += 1;
                 } else if tracking && (l.misses >= LOST_MISSES || beyond) {
                     debug!("localization lost after {} misses", l.misses);
+                    // The robot is most likely still within the uncertainty around the
+                    // dead-reckoned pose (a LiDAR outage, a slip): the search looks there
+                    // first, and widens to the whole map when that finds nothing (a robot
+                    // carried away).
+                    l.prior = Some(fix);
                     l.fix = None;
                     l.tracking = false;
                     l.counters.lost += 1;
@@ -353,12 +372,12 @@ impl Mapper<'_> {
     /// one submap (a home's is 4 m across, its LiDAR reaches 10 m), so it is matched with all
     /// of the map it can see. The world pose when the match is good; else why not.
     ///
-    /// A good match has a small residual over enough points. With `whole`, most of the scan
-    /// must also fall on the map (the loop search's fitness): a place found without a prior
-    /// must show it is the place. Tracking, seeded by the prediction and bounded by its
-    /// uncertainty, accepts a scan that sees more than the map holds (a part of the building
-    /// not mapped, furniture moved in).
-    fn match_map(&mut self, source: MatchSource, seed: &Se2, whole: bool) -> Result<Se2, Miss> {
+    /// A good match has a small residual over enough points, and most of the points the map
+    /// can judge (those on cells it observed) lie within two cells of its walls, as the loop
+    /// search's fitness asks. A scan that sees more than the map holds (a part of the building
+    /// not mapped, a long-range LiDAR beyond the submaps gathered) is not held against it; a
+    /// wrong place, where the map saw free space, is.
+    fn match_map(&mut self, source: MatchSource, seed: &Se2) -> Result<Se2, Miss> {
         let reach =
             self.cfg.max_range as f64 + self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64;
         // (distance to the anchor, slot, anchor pose), nearest first.
@@ -415,19 +434,15 @@ impl Mapper<'_> {
             }
         };
         // The fitness counts the points within two cells of the map's walls (the ICP's own
-        // correspondences reach farther, to converge from the prediction), and without
-        // `whole` only among the points the map can judge: those on cells it observed.
+        // correspondences reach farther, to converge from the seed) among those the map can
+        // judge.
         let tight = IcpConfig {
             max_correspondence: 2.0 * self.cfg.grid.resolution,
             max_iterations: 1,
             ..icp
         };
         let close = align(points, &tree, &r.pose, &tight).map_or(0, |t| t.inliers);
-        let judged = if whole {
-            points.len() as u32
-        } else {
-            self.map_fit(source, &r.pose).1
-        };
+        let judged = self.map_fit(source, &r.pose).1;
         let fitness = close as f32 / judged.max(1) as f32;
         match r {
             r if r.inliers < icp.min_points || judged < icp.min_points => Err(Miss::Uninformative),
@@ -453,7 +468,7 @@ impl Mapper<'_> {
         let lc = self.cfg.loops;
         let half = self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64 * 0.5;
         let config = FarCsmConfig {
-            base_level: 1,
+            base_level: BASE_LEVEL.min(lc.pyramid_levels.saturating_sub(2)),
             min_score: lc.min_score,
             ..FarCsmConfig::DEFAULT
         };
@@ -541,7 +556,7 @@ impl Mapper<'_> {
     /// around it and, when it lies where the prior allows, kept among the sweep's places with
     /// its score in the whole map.
     fn add_global_candidate(&mut self, sweep: &mut Sweep, f: &FarMatch) {
-        let Ok(world) = self.match_map(MatchSource::Far, &f.pose, true) else {
+        let Ok(world) = self.match_map(MatchSource::Far, &f.pose) else {
             return;
         };
         let outside = sweep.region.is_some_and(|(c, xy, theta)| {

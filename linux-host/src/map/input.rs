@@ -330,6 +330,9 @@ impl Iterator for InputStream {
             let Ok(event) = &item else {
                 return Some(item);
             };
+            if self.skip_ns == 0 {
+                return Some(item);
+            }
             let first = *self.first.get_or_insert(event.t_ns());
             if event.t_ns() >= first.saturating_add(self.skip_ns) {
                 return Some(item);
@@ -1717,6 +1720,27 @@ RLASER 2 3.0 4.0 1.0 2.0 3.14159 1.0 2.0 0.0 5.1 h 0\n";
             bag.write("/scan_rear", t + 3_000, &scan).unwrap();
         }
         bag.finish().unwrap();
+    }
+
+    #[test]
+    fn skipping_drops_the_first_seconds_by_stamp() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("run.mcap");
+        write_bag(&path);
+        let all = collect(&mut open_input(&path, &InputOptions::default()).unwrap());
+        let first = all[0].t_ns();
+        // The events from 1 ms after the first one on, in their order.
+        let kept: Vec<i64> = all
+            .iter()
+            .map(SensorEvent::t_ns)
+            .filter(|&t| t >= first + 1_000_000)
+            .collect();
+        let mut stream = open_input(&path, &InputOptions::default())
+            .unwrap()
+            .skip_seconds(0.001);
+        let skipped: Vec<i64> = collect(&mut stream).iter().map(SensorEvent::t_ns).collect();
+        assert!(!kept.is_empty() && kept.len() < all.len());
+        assert_eq!(skipped, kept);
     }
 
     #[test]
