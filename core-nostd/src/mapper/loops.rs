@@ -68,19 +68,6 @@ pub(crate) struct LoopState {
     unconfirmed: heapless::Vec<LoopCandidate, UNCONFIRMED>,
     /// The submap (slot and anchor serial) whose levels the pyramid storage holds.
     pub(crate) pyramid_of: Option<(u16, u32)>,
-    /// Why the last [`Mapper::match_in_submap`] that failed did: whether the scan said
-    /// nothing about the place (too few points in the submap, a corridor that fixes only
-    /// some directions) or disagreed with it.
-    pub(crate) last_miss: Miss,
-}
-
-/// Why a match in a submap failed.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Miss {
-    /// The scan holds too little of the submap, or too little structure, to tell.
-    Uninformative,
-    /// No pose fits, or the best one fits badly.
-    Mismatch,
 }
 
 /// Which scan a loop match uses.
@@ -98,7 +85,6 @@ impl LoopState {
             at_loop: Travel::ZERO,
             unconfirmed: heapless::Vec::new(),
             pyramid_of: None,
-            last_miss: Miss::Mismatch,
         }
     }
 }
@@ -336,7 +322,6 @@ impl Mapper<'_> {
             || (self.loop_scan.len() as u32) < self.cfg.icp.min_points.min(total as u32)
         {
             self.st.stats.loops_no_match += 1;
-            self.st.loops.last_miss = Miss::Uninformative;
             return None;
         }
         let (submap, pyramid) = submap_and_pyramid(
@@ -355,7 +340,6 @@ impl Mapper<'_> {
         };
         let Ok(found) = search(self.loop_scan, &submap, &pyramid, seed, &csm) else {
             self.st.stats.loops_no_match += 1;
-            self.st.loops.last_miss = Miss::Mismatch;
             return None;
         };
         let n = submap.occupied_points(OCCUPIED, NORMAL_RADIUS, self.reference);
@@ -377,10 +361,6 @@ impl Mapper<'_> {
                     n
                 );
                 self.st.stats.loops_rejected += 1;
-                self.st.loops.last_miss = match e {
-                    crate::frontend::MatchError::Degenerate { .. } => Miss::Uninformative,
-                    _ => Miss::Mismatch,
-                };
                 return None;
             }
         };
@@ -398,7 +378,6 @@ impl Mapper<'_> {
                 libm::hypot(moved.x, moved.y)
             );
             self.st.stats.loops_rejected += 1;
-            self.st.loops.last_miss = Miss::Mismatch;
             return None;
         }
         let [sxy, sth] = lc.min_sigma;

@@ -164,9 +164,9 @@ impl FarState {
         &self.scan
     }
 
-    /// Keeps `points` (evenly subsampled) as the scan matched with [`MatchSource::Far`]
-    /// (super::loops::MatchSource::Far), for the localization's global search (the far loop
-    /// search does not run while localizing).
+    /// Keeps `points` (evenly subsampled) as the scan matched with
+    /// [`MatchSource::Far`](super::loops::MatchSource::Far): the far loop search's keyframe, or
+    /// the localization's global search (the far loop search does not run while localizing).
     pub(in crate::mapper) fn keep_scan(&mut self, points: &[ScanPoint]) {
         self.scan.clear();
         let stride = points.len().div_ceil(FAR_POINTS).max(1);
@@ -209,11 +209,7 @@ impl Mapper<'_> {
         };
         let travel = meta.travel;
         let far = &mut self.st.far;
-        far.scan.clear();
-        let stride = self.scan.len().div_ceil(FAR_POINTS).max(1);
-        for q in self.scan.iter().step_by(stride) {
-            let _ = far.scan.push(*q);
-        }
+        far.keep_scan(self.scan.as_slice());
         far.serial = serial;
         far.pose = gk;
         far.travel = travel;

@@ -41,7 +41,7 @@
 mod global;
 
 use super::far::accept::SUPPORT;
-use super::loops::{MatchSource, Miss};
+use super::loops::MatchSource;
 use super::{
     FrameOutput, Mapper, MapperConfig, MapperError, MapperParts, MapperState, Probe, Section,
     PYRAMID_LEVELS,
@@ -56,6 +56,15 @@ use crate::frontend::{align, IcpConfig, KdTree};
 use crate::frontend::{PointMap, Submap};
 use crate::geom::Se2;
 use crate::gpe::{GpeFrame, NodeTie};
+
+/// Why a match with the map failed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Miss {
+    /// The scan holds too little of the map, or too little structure, to tell.
+    Uninformative,
+    /// No pose fits, or the best one fits badly.
+    Mismatch,
+}
 
 /// Keyframes in a row without a match after which tracking is lost.
 pub const LOST_MISSES: u8 = 5;
