@@ -19,7 +19,7 @@
 # The seeds, sizes and gyro variants were fixed before any result was seen; do not edit the
 # list to make the figures look better.
 #
-#   bench/generalize.sh [--quick] [--heldout] [--perturb] [--noise N] [--only REGEX] [--jobs 2] [--out target/bench-generalize]
+#   [CLOI_BIN=PATH] bench/generalize.sh [--quick] [--heldout] [--perturb] [--noise N] [--only REGEX] [--jobs 2] [--out target/bench-generalize]
 #
 # --quick:   5 small and medium worlds, no CARMEN logs (a few minutes; for CI).
 # --heldout: 8 worlds no setting was chosen on (see HELDOUT_WORLDS), no CARMEN logs.
@@ -73,8 +73,14 @@ while [ $# -gt 0 ]; do
   esac
 done
 data=../shared/data/carmen
-cargo build -q --release -p cloi-host --bin cloi
-cloi=$PWD/target/release/cloi
+# CLOI_BIN names a binary built elsewhere (two builds compared side by side); by default the
+# checkout's own release build.
+if [ -n "${CLOI_BIN:-}" ]; then
+  cloi=$(realpath "$CLOI_BIN")
+else
+  cargo build -q --release -p cloi-host --bin cloi
+  cloi=$PWD/target/release/cloi
+fi
 mkdir -p "$out"
 
 # One generated world under noise draw K (0: the simulator seed is the world's): simulate

@@ -12,6 +12,8 @@
 //!   anchor (0.0515 m);
 //! * the whole process of `cloi map` on the whole `intel.clf` stays under each profile's
 //!   memory ceiling (its proven static footprint plus 24 MiB);
+//! * a soak: four hours of the simulated home (68,000 scans, the graph pruned throughout) keep
+//!   the process's resident memory flat from the middle of the run to its end;
 //! * each of the three whole logs converted to a ROS 2 bag (`cloi convert`: messages in stamp
 //!   order, as a robot delivers them) maps within 10 % of the relation error of the same log
 //!   read from the `.clf`, without odometry gaps. The bag of intel differs from its `.clf` in
@@ -224,6 +226,81 @@ fn intel_maps_within_each_profiles_memory_ceiling() {
         let r = map(&log, &dir, &["--profile", spec.name]);
         assert_within_memory_ceiling(&r, spec.name, footprint);
     }
+}
+
+/// Resident memory of process `pid` (Linux's `VmRSS`), bytes; `None` once it has exited.
+fn rss_bytes(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let kb = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))?
+        .trim()
+        .strip_suffix("kB")?
+        .trim()
+        .parse::<u64>()
+        .ok()?;
+    Some(kb * 1024)
+}
+
+/// A soak (issue 19): `cloi map` over four hours of the simulated home in the home profile,
+/// its resident memory sampled every 50 ms. Mapping a place for longer must not cost more
+/// memory: from the middle of the run (the graph has been pruned for an hour by then) to 95 %
+/// of it (the last samples hold the outputs being composed), the resident memory may not grow
+/// by more than 1 MiB, which is what keeping 32 bytes per scan of the second half would
+/// take. The whole run stays within the home ceiling. `bench/soak.sh --hours 24` is the long
+/// version (office: +0.00 MiB over the second half).
+#[test]
+fn four_hours_of_the_home_keep_memory_flat() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("soak");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(["map", "--sim-world", "home", "--sim-duration", "14400"])
+        .args(["--profile", "home", "--deterministic", "--quiet", "--out"])
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("cloi runs");
+    let mut samples = Vec::new();
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("wait") {
+            break status;
+        }
+        if let Some(rss) = rss_bytes(child.id()) {
+            samples.push(rss);
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    let mut stderr = String::new();
+    if let Some(mut e) = child.stderr.take() {
+        std::io::Read::read_to_string(&mut e, &mut stderr).expect("stderr");
+    }
+    assert!(status.success(), "{stderr}");
+    let text = std::fs::read_to_string(out.join("report.json")).expect("report");
+    let report: serde_json::Value = serde_json::from_str(&text).expect("json");
+    let pruned = report["mapper"]["nodes_pruned"]
+        .as_u64()
+        .expect("nodes_pruned");
+    let n = samples.len();
+    assert!(n >= 100, "only {n} samples of the run");
+    let (half, end) = (n / 2, n * 95 / 100);
+    let at_half = samples[half];
+    let most = samples[half..=end].iter().copied().max().expect("samples");
+    let mib = |b: u64| b as f64 / 1048576.0;
+    println!(
+        "soak: {} scans, {pruned} nodes pruned, {n} samples, RSS {:.2} MiB at 50 %, at most \
+         {:.2} MiB up to 95 %, {:.2} MiB at 95 %",
+        report["scans"],
+        mib(at_half),
+        mib(most),
+        mib(samples[end])
+    );
+    assert!(pruned > 5_000, "the soak must prune: {pruned} nodes");
+    assert!(
+        most <= at_half + (1 << 20),
+        "resident memory grew from {at_half} B to {most} B in the second half"
+    );
+    assert_within_memory_ceiling(&report, HOME.name, size_of::<HomeResources>());
 }
 
 #[test]

@@ -292,6 +292,8 @@ struct Finished {
     scan_us: Latency,
     records: ScanSpool,
     gpe_max_jump: f64,
+    /// Largest heap in use while mapping (before the outputs were composed), when measured.
+    mapping_peak_heap_bytes: Option<u64>,
     /// `(serial, global pose, front-end pose)` of every keyframe in the final graph.
     keyframe_poses: Vec<(u32, Se2, Se2)>,
     stats: MapperStats,
@@ -475,6 +477,8 @@ fn drive(
     mapper.request_optimization();
     while mapper.step_backend(settings.backend_iterations_per_scan.max(1)) == BackendStep::Working {
     }
+    // The heap's high-water mark of mapping itself, before the outputs' copies below.
+    let mapping_peak_heap_bytes = peak_heap_bytes();
     let g = mapper.graph();
     let file = GraphFile {
         ids: mapper.nodes().iter().map(|m| i64::from(m.serial)).collect(),
@@ -533,6 +537,7 @@ fn drive(
         grid: mapper.config().grid,
         records: driver.records,
         gpe_max_jump: driver.gpe_max_jump,
+        mapping_peak_heap_bytes,
         scan_us: driver.scan_us,
         stamps_repaired: driver.feeder.stamps_repaired,
         sync: driver.feeder.sync_stats(),
@@ -693,6 +698,10 @@ fn finish(
     report
         .extra
         .insert("backend_delay_s".into(), json!(settings.backend_delay_s));
+    report.extra.insert(
+        "mapping_peak_heap_bytes".into(),
+        json!(f.mapping_peak_heap_bytes),
+    );
     report
         .extra
         .insert("speed_x_realtime".into(), json!(report.speed()));
