@@ -70,6 +70,20 @@ pub enum Command {
     ShowMap(crate::map::show::ShowMapArgs),
     /// Simulate a robot in a world and write a ROS 2 bag with exact ground truth.
     Sim(crate::sim::command::SimArgs),
+    /// Map live from a LiDAR on a serial port (`--lidar ld06:/dev/ttyUSB0`) until
+    /// `--duration` ends or Ctrl-C; writes what `cloi map` writes.
+    Run(crate::live::RunArgs),
+    /// Emulate a device on a pseudo-terminal from a simulated robot (for `cloi run` without
+    /// the hardware).
+    #[command(subcommand)]
+    Emulate(EmulateCommand),
+}
+
+/// The devices `cloi emulate` can play.
+#[derive(Debug, Subcommand)]
+pub enum EmulateCommand {
+    /// An LDRobot LD06 (LD19): prints the terminal's path, then sends the simulated scans.
+    Ld06(crate::live::emulate::EmulateArgs),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -88,5 +102,7 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Map(args) => crate::map::command::run_command(&args, cli.quiet, out),
         Command::Localize(args) => crate::map::command::run_localize(&args, cli.quiet, out),
         Command::ShowMap(args) => crate::map::show::run(&args, out),
+        Command::Run(args) => crate::live::run(&args, cli.quiet, out),
+        Command::Emulate(EmulateCommand::Ld06(args)) => crate::live::emulate::run(&args, out),
     }
 }

@@ -12,6 +12,7 @@
 
 pub mod cli;
 pub mod corrupt;
+pub mod live;
 pub mod map;
 pub mod optimize;
 pub mod prune;

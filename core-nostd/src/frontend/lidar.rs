@@ -3,7 +3,9 @@
 //!
 //! The front-end pose drifts but is locally exact. Each scan is placed in three steps:
 //! 1. **seed**: the previous front-end pose composed with the fused wheel odometry's increment
-//!    since the previous scan (identity when the odometry has a gap);
+//!    since the previous scan (identity when the odometry has a gap). An input that has given
+//!    no odometry at all (a LiDAR alone) is seeded with the previous scan's step instead: a
+//!    robot keeps its speed and turn rate over one scan far better than it stops;
 //! 2. **match**: ICP of the preprocessed scan against the local point map, from the seed and,
 //!    while turning fast, from seeds rotated by multiples of the turn (a wheel heading that
 //!    lags or leads the scan by a frame puts the seed outside ICP's basin); a match below the
@@ -171,6 +173,10 @@ pub struct LidarFrontend {
     noise_samples: u32,
     /// The gyro's bias, measured by the matches.
     gyro_bias: GyroBias,
+    /// Some scan so far came with an odometry pose.
+    odometry_seen: bool,
+    /// The last scan's step (the seed of the next when the input has no odometry).
+    last_step: Se2,
     counters: FrontendCounters,
 }
 
@@ -192,6 +198,8 @@ impl LidarFrontend {
             noise_scale: NOISE_SCALE_MAX,
             noise_samples: 0,
             gyro_bias: GyroBias::new(),
+            odometry_seen: false,
+            last_step: Se2::IDENTITY,
             counters: FrontendCounters {
                 icp_failures: 0,
                 icp_degenerate: 0,
@@ -236,6 +244,7 @@ impl LidarFrontend {
             pose: Se2::IDENTITY,
             odometry,
         });
+        self.odometry_seen |= odometry.is_some();
         let (increment, odometry_still) = self.odometry_increment(&previous, odometry);
         let seed = previous.pose.compose(&increment);
         // The odometry's prediction as a measurement: only for a real increment (not a gap, not
@@ -280,6 +289,7 @@ impl LidarFrontend {
             self.travel.rotation += libm::fabs(step.theta);
         }
         self.pose = pose;
+        self.last_step = step;
         self.previous = Some(PreviousScan { pose, odometry });
         FrontendStep { pose, step }
     }
@@ -295,6 +305,7 @@ impl LidarFrontend {
                 (self.stall.inverse().compose(&a.between(&b)), false)
             }
             (Some(a), Some(b)) => (a.between(&b), false),
+            _ if !self.odometry_seen => (self.last_step, false),
             _ => {
                 if self.previous.is_some() {
                     self.counters.odometry_gaps += 1;

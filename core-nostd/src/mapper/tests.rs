@@ -1064,3 +1064,30 @@ fn a_robot_carried_elsewhere_is_lost_then_found_again() {
         assert_eq!((c.fixes, c.lost), (2, 1), "{c:?}");
     });
 }
+
+#[test]
+fn a_lidar_alone_maps_the_laps_seeded_by_its_own_motion() {
+    with_stack(|| {
+        let truth = path();
+        let mut res: Box<TestResources> = Box::default();
+        let mut mapper = res.mapper(config()).expect("resources fit");
+        let mut rt = Vec::new();
+        for (i, p) in truth.iter().enumerate() {
+            let ranges = scan_at(p);
+            let input = ScanInput {
+                stamp: 1_000_000_000 + i as i64 * 100_000_000,
+                ranges: &ranges,
+                geometry: geometry(),
+                mounting: Se2::IDENTITY,
+            };
+            rt.push(mapper.push_scan(&input, false).expect("scan accepted").pose);
+            mapper.step_backend(5);
+        }
+        let s = mapper.stats();
+        // No odometry at all is not a gap in it: every scan is seeded by the last step.
+        assert_eq!(s.odometry_gaps, 0, "{s:?}");
+        assert_eq!(s.scans as usize, truth.len());
+        // As locally consistent as the bag-order run with wheel odometry.
+        assert!(relative_error(&rt, &truth, 10) < 0.08);
+    });
+}

@@ -157,6 +157,7 @@ pub fn run(args: &SimArgs, out: &mut dyn Write) -> Result<()> {
         camera_rate: args.camera_rate,
         motion_blur: args.motion_blur,
         faults: !args.no_faults,
+        lidar: None,
     };
     let sim = Simulation::new(World::from_file(&file), cfg);
     if let Some(path) = &args.preview {

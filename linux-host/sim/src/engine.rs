@@ -89,6 +89,8 @@ pub struct SimConfig {
     pub motion_blur: bool,
     /// Apply the world's fault schedule.
     pub faults: bool,
+    /// The LiDAR carried instead of the world's robot's own (an emulated device's).
+    pub lidar: Option<LidarParams>,
 }
 
 impl Default for SimConfig {
@@ -103,6 +105,7 @@ impl Default for SimConfig {
             camera_rate: 10.0,
             motion_blur: false,
             faults: true,
+            lidar: None,
         }
     }
 }
@@ -164,7 +167,9 @@ impl Rig {
             }
         };
         let lidar = cfg.sensors.has_lidar().then(|| {
-            if guide {
+            if let Some(l) = cfg.lidar {
+                l
+            } else if guide {
                 LidarParams::guide()
             } else {
                 LidarParams::cleaner()

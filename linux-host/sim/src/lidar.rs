@@ -69,6 +69,20 @@ impl LidarParams {
         }
     }
 
+    /// An LDRobot LD06: 450 points a turn (0.8 deg), 0.02 to 12 m, 10 Hz, beams spread over
+    /// the whole turn (the vendor's data sheet; the noise is the cleaner LiDAR's).
+    pub fn ld06() -> LidarParams {
+        LidarParams {
+            beams: 450,
+            angle_increment: std::f64::consts::TAU / 450.0,
+            range_min: 0.02,
+            range_max: 12.0,
+            rate_hz: 10.0,
+            sweep_time: 0.1,
+            ..LidarParams::cleaner()
+        }
+    }
+
     /// A guide robot's LiDAR: 360 x 1 deg, 0.3 to 30 m, 1 Hz (as in the paper's airport robot).
     pub fn guide() -> LidarParams {
         LidarParams {

@@ -129,14 +129,27 @@ fn execute(
     quiet: bool,
     out: &mut dyn Write,
 ) -> Result<()> {
-    let mut config = MapConfig::load(profile, args.config.as_deref(), &args.set)?;
-    if args.deterministic {
-        config.run.deterministic = true;
-    }
     let input = args
         .input_args
         .open(args.input.as_deref())?
         .skip_seconds(args.skip);
+    execute_input(args, profile, localize, input, quiet, out).map(|_| ())
+}
+
+/// [`execute`] on an input already opened (a live device's stream for `cloi run`); returns
+/// the report it wrote.
+pub(crate) fn execute_input(
+    args: &MapArgs,
+    profile: Profile,
+    localize: Option<LocalizeIn>,
+    input: crate::map::input::InputStream,
+    quiet: bool,
+    out: &mut dyn Write,
+) -> Result<MapReport> {
+    let mut config = MapConfig::load(profile, args.config.as_deref(), &args.set)?;
+    if args.deterministic {
+        config.run.deterministic = true;
+    }
     let backend_delay_s = args.backend_delay.unwrap_or(config.run.backend_delay_s);
     let settings = MapSettings {
         profile,
@@ -176,7 +189,7 @@ fn execute(
             eprintln!("saved the map to {}", path.display());
         }
     }
-    Ok(())
+    Ok(result.report)
 }
 
 /// One human line about a finished run, from its report.

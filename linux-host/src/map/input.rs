@@ -1193,9 +1193,28 @@ impl SampleSink for ChannelSink {
     }
 }
 
+/// Events produced on another thread (the simulator, a live device) and handed over through
+/// a bounded channel; at its end, the thread's error if it failed.
 struct SimSource {
     rx: Receiver<Result<SensorEvent>>,
     thread: Option<JoinHandle<Result<()>>>,
+}
+
+/// The events a producer thread sends on `rx`, in the order sent; the stream ends when the
+/// thread drops its sender, with the thread's error if it returns one. `size` is what the
+/// progress bar shows (`Unknown` for a live device).
+pub fn thread_input(
+    rx: Receiver<Result<SensorEvent>>,
+    thread: JoinHandle<Result<()>>,
+    size: InputSize,
+) -> InputStream {
+    InputStream::new(
+        Box::new(SimSource {
+            rx,
+            thread: Some(thread),
+        }),
+        size,
+    )
 }
 
 impl EventSource for SimSource {
@@ -1265,13 +1284,7 @@ pub fn sim_input_with(world: &str, cfg: SimConfig) -> Result<InputStream> {
             }
         })
         .context("starting the simulation thread")?;
-    let stream = InputStream::new(
-        Box::new(SimSource {
-            rx,
-            thread: Some(thread),
-        }),
-        InputSize::Seconds(cfg.duration),
-    );
+    let stream = thread_input(rx, thread, InputSize::Seconds(cfg.duration));
     {
         let mut stats = lock(&stream.stats);
         stats.laser_offset = Some(laser_offset);

@@ -1,0 +1,292 @@
+//! An LDRobot LD06 / LD19 on a serial port as a stream of scans: a thread reads the port,
+//! decodes its packets with the core's [`PacketReader`] and gathers them into revolutions of
+//! [`BEAMS`] beams ([`Revolution`]), each sent on as one scan.
+//!
+//! * **Time**: a revolution is stamped with the host's clock when its last packet arrived,
+//!   less half a turn (the time its beams were measured around); the device's own millisecond
+//!   counter wraps every 30 s and is not used. The beams are not deskewed: the head turns
+//!   clockwise while the beams count counter-clockwise from angle zero, so their times do not
+//!   follow their order and a scan's `time_increment` cannot describe them.
+//! * **Damage**: bytes before a packet start, CRC failures and impossible angles are counted
+//!   (the core's [`Ld06Counters`]); the first revolution (the device was mid-turn when reading
+//!   began) and revolutions with fewer than [`MIN_POINTS`] returns are counted and dropped.
+//! * **A device that goes away** (unplugged, its port closed): the read error is counted and
+//!   the port is opened again every [`REOPEN`] until it answers or the run stops; the mapper
+//!   meanwhile waits for scans, and resumes with the next one.
+
+use std::io::Read;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::SyncSender;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use anyhow::{Context, Result};
+use cloi_core::sensor::ld06::{Ld06Counters, PacketReader, Revolution};
+use cloi_core::Se2;
+use serde::Serialize;
+
+use crate::map::input::{ScanEvent, SensorEvent};
+
+/// Beams of a scan: one per degree (the LD06 measures about 450 points a turn; the nearer of
+/// two in one beam is kept).
+pub const BEAMS: usize = 360;
+/// Fewer returns than this in a revolution: no scan (a blocked or stopping head).
+pub const MIN_POINTS: u32 = 60;
+/// Shortest and longest ranges of the LD06 and LD19, metres.
+pub const RANGE_MIN: f32 = 0.02;
+/// See [`RANGE_MIN`].
+pub const RANGE_MAX: f32 = 12.0;
+/// The LD06's serial speed.
+pub const DEFAULT_BAUD: u32 = 230_400;
+/// Wait between attempts to open a port that went away.
+pub const REOPEN: Duration = Duration::from_millis(250);
+/// Longest wait of one read, so that a stop request is seen promptly.
+const READ_TIMEOUT: Duration = Duration::from_millis(100);
+
+/// What the device thread met, for the run's report.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
+pub struct DeviceCounters {
+    /// Bytes read from the port.
+    pub bytes: u64,
+    /// Valid packets.
+    pub packets: u64,
+    /// Packets whose CRC did not match.
+    pub crc_errors: u64,
+    /// Bytes skipped while looking for a packet start.
+    pub skipped_bytes: u64,
+    /// Packets with an angle of a full turn or more.
+    pub bad_angles: u64,
+    /// Whole revolutions sent on as scans.
+    pub scans: u64,
+    /// Revolutions dropped: the partial first one after (re)opening, or too few returns.
+    pub revolutions_dropped: u64,
+    /// Reads that failed (the device went away).
+    pub read_errors: u64,
+    /// Times the port was opened again after a failure.
+    pub reopened: u64,
+}
+
+impl DeviceCounters {
+    fn add_reader(&mut self, before: Ld06Counters, after: Ld06Counters) {
+        self.packets += after.packets - before.packets;
+        self.crc_errors += after.crc_errors - before.crc_errors;
+        self.skipped_bytes += after.skipped_bytes - before.skipped_bytes;
+        self.bad_angles += after.bad_angles - before.bad_angles;
+    }
+}
+
+/// Where and how to read the device.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Ld06Port {
+    /// Device path (`/dev/ttyUSB0`, a pseudo-terminal).
+    pub path: String,
+    /// Serial speed.
+    pub baud: u32,
+    /// Pose of the LiDAR on the robot.
+    pub mounting: Se2,
+}
+
+impl Ld06Port {
+    fn open(&self) -> serialport::Result<Box<dyn serialport::SerialPort>> {
+        serialport::new(&self.path, self.baud)
+            .timeout(READ_TIMEOUT)
+            .open()
+    }
+
+    /// Opens the port (a clear error if it cannot be) and starts the thread that reads it and
+    /// sends its scans on `tx` until `stop` is set; `counters` follows what it met.
+    ///
+    /// # Errors
+    /// The port cannot be opened, or the thread cannot be started.
+    pub fn start(
+        self,
+        tx: SyncSender<Result<SensorEvent>>,
+        stop: Arc<AtomicBool>,
+        counters: Arc<Mutex<DeviceCounters>>,
+    ) -> Result<std::thread::JoinHandle<Result<()>>> {
+        let port = self
+            .open()
+            .with_context(|| format!("opening the LiDAR's serial port {}", self.path))?;
+        std::thread::Builder::new()
+            .name("cloi-ld06".into())
+            .spawn(move || {
+                self.read_until_stopped(port, &tx, &stop, &counters);
+                Ok(())
+            })
+            .context("starting the LiDAR thread")
+    }
+
+    fn read_until_stopped(
+        &self,
+        port: Box<dyn serialport::SerialPort>,
+        tx: &SyncSender<Result<SensorEvent>>,
+        stop: &AtomicBool,
+        counters: &Mutex<DeviceCounters>,
+    ) {
+        let count = |f: &mut dyn FnMut(&mut DeviceCounters)| {
+            f(&mut counters
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner));
+        };
+        let mut port = Some(port);
+        let mut assembler = Assembler::new(self.mounting);
+        let mut buf = [0u8; 512];
+        let mut last_attempt = Instant::now();
+        while !stop.load(Ordering::Acquire) {
+            let Some(p) = port.as_mut() else {
+                std::thread::sleep(REOPEN.saturating_sub(last_attempt.elapsed()));
+                last_attempt = Instant::now();
+                if let Ok(p) = self.open() {
+                    log::warn!("{}: the LiDAR answers again", self.path);
+                    count(&mut |c| c.reopened += 1);
+                    assembler = Assembler::new(self.mounting);
+                    port = Some(p);
+                }
+                continue;
+            };
+            match p.read(&mut buf) {
+                Ok(n) => {
+                    let before = assembler.reader.counters();
+                    let mut scans = Vec::new();
+                    let mut dropped = 0;
+                    for &b in &buf[..n] {
+                        match assembler.push(b) {
+                            Some(Ok(scan)) => scans.push(scan),
+                            Some(Err(())) => dropped += 1,
+                            None => {}
+                        }
+                    }
+                    let after = assembler.reader.counters();
+                    count(&mut |c| {
+                        c.bytes += n as u64;
+                        c.add_reader(before, after);
+                        c.revolutions_dropped += dropped;
+                        c.scans += scans.len() as u64;
+                    });
+                    for scan in scans {
+                        if tx.send(Ok(SensorEvent::Scan(scan))).is_err() {
+                            return;
+                        }
+                    }
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
+                Err(e) => {
+                    log::warn!("{}: {e}; opening it again until it answers", self.path);
+                    count(&mut |c| c.read_errors += 1);
+                    port = None;
+                    last_attempt = Instant::now();
+                }
+            }
+        }
+    }
+}
+
+/// Bytes to packets to scans.
+struct Assembler {
+    reader: PacketReader,
+    revolution: Revolution<BEAMS>,
+    ranges: [f32; BEAMS],
+    /// The first revolution after (re)opening began mid-turn.
+    partial: bool,
+    mounting: Se2,
+    last_stamp: i64,
+}
+
+impl Assembler {
+    fn new(mounting: Se2) -> Self {
+        Assembler {
+            reader: PacketReader::new(),
+            revolution: Revolution::new(),
+            ranges: [f32::NAN; BEAMS],
+            partial: true,
+            mounting,
+            last_stamp: i64::MIN,
+        }
+    }
+
+    /// The next byte; a scan (or a dropped revolution) when it completed one.
+    fn push(&mut self, byte: u8) -> Option<Result<ScanEvent, ()>> {
+        let packet = self.reader.push(byte)?;
+        let points = self.revolution.add(&packet, &mut self.ranges)?;
+        if std::mem::take(&mut self.partial) || points < MIN_POINTS {
+            return Some(Err(()));
+        }
+        let turn_s = if packet.speed_dps > 0 {
+            360.0 / f64::from(packet.speed_dps)
+        } else {
+            0.1
+        };
+        let now = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX));
+        // Half a turn back; never at or before the previous scan (the clock may step back).
+        let stamp = (now - (turn_s * 0.5e9) as i64).max(self.last_stamp.saturating_add(1));
+        self.last_stamp = stamp;
+        Some(Ok(ScanEvent {
+            t_ns: stamp,
+            ranges: self.ranges.to_vec(),
+            angle_min: 0.0,
+            angle_increment: Revolution::<BEAMS>::INCREMENT,
+            range_min: RANGE_MIN,
+            range_max: RANGE_MAX,
+            time_increment: 0.0,
+            laser_offset: self.mounting,
+            odom: None,
+        }))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cloi_core::sensor::ld06::{Ld06Packet, Ld06Point, POINTS};
+
+    /// The packets of `turns` revolutions of a head in a round room of radius `r_mm`.
+    fn turns(turns: usize, r_mm: u16) -> Vec<u8> {
+        let per_turn = 38;
+        let step = 36_000 / (per_turn * POINTS) as u32;
+        let mut bytes = Vec::new();
+        for k in 0..turns * per_turn {
+            let start = ((k % per_turn) * POINTS) as u32 * step;
+            let p = Ld06Packet {
+                speed_dps: 3600,
+                start_cdeg: start as u16,
+                end_cdeg: ((start + 11 * step) % 36_000) as u16,
+                stamp_ms: 0,
+                points: [Ld06Point {
+                    distance_mm: r_mm,
+                    intensity: 200,
+                }; POINTS],
+            };
+            bytes.extend_from_slice(&p.encode());
+        }
+        bytes
+    }
+
+    #[test]
+    fn whole_turns_become_scans_after_the_first_and_damage_is_counted() {
+        let mut a = Assembler::new(Se2::new(0.1, 0.0, 0.0));
+        let mut bytes = turns(4, 2000);
+        // One flipped bit in the third turn's first packet.
+        bytes[2 * 38 * 47 + 10] ^= 0x10;
+        let (mut scans, mut dropped) = (Vec::new(), 0);
+        for b in bytes {
+            match a.push(b) {
+                Some(Ok(s)) => scans.push(s),
+                Some(Err(())) => dropped += 1,
+                None => {}
+            }
+        }
+        // Turns end when the next one starts: three ends seen, the first dropped.
+        assert_eq!((scans.len(), dropped), (2, 1));
+        assert_eq!(a.reader.counters().crc_errors, 1);
+        for s in &scans {
+            assert_eq!(s.ranges.len(), BEAMS);
+            let seen: Vec<f32> = s.ranges.iter().copied().filter(|r| r.is_finite()).collect();
+            assert!(seen.len() > 300, "{}", seen.len());
+            assert!(seen.iter().all(|&r| (r - 2.0).abs() < 1e-6));
+            assert_eq!(s.laser_offset, Se2::new(0.1, 0.0, 0.0));
+        }
+        assert!(scans[1].t_ns > scans[0].t_ns);
+    }
+}

@@ -1,0 +1,160 @@
+//! `cloi run` against a device: the emulated LD06 of `cloi emulate ld06` on a pseudo-terminal
+//! (issue 18). Mapped live from scans alone; damaged packets and a device that goes away are
+//! counted while the run goes on; Ctrl-C (SIGINT) ends a run with every output written; a
+//! device that is not there is a clear error.
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// A running emulator and the terminal it sends on.
+struct Emulator {
+    child: Child,
+    path: String,
+}
+
+impl Drop for Emulator {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn emulate(args: &[&str]) -> Emulator {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(["emulate", "ld06", "--world", "home"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .spawn()
+        .expect("the emulator starts");
+    let mut line = String::new();
+    BufReader::new(child.stdout.take().expect("stdout"))
+        .read_line(&mut line)
+        .expect("the emulator prints its terminal");
+    let path = line
+        .trim()
+        .strip_prefix("ld06 on ")
+        .expect("`ld06 on PATH`")
+        .to_owned();
+    Emulator { child, path }
+}
+
+fn report(out: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(out.join("report.json")).expect("report.json");
+    serde_json::from_str(&text).expect("json")
+}
+
+fn check_outputs(out: &Path, r: &serde_json::Value) {
+    let scans = r["scans"].as_u64().expect("scans");
+    assert_eq!(r["device"]["scans"].as_u64(), Some(scans), "{r}");
+    let poses = std::fs::read_to_string(out.join("trajectory.tum")).expect("trajectory");
+    let poses = poses.lines().filter(|l| !l.starts_with('#')).count();
+    assert_eq!(poses as u64, scans);
+    for f in [
+        "map.png",
+        "map.pgm",
+        "map.yaml",
+        "gpe.tum",
+        "graph.g2o",
+        "result.mcap",
+    ] {
+        assert!(out.join(f).is_file(), "{f} missing");
+    }
+    // Walls were mapped: the picture has occupied (dark) cells.
+    let pgm = std::fs::read(out.join("map.pgm")).expect("pgm");
+    assert!(pgm.iter().rev().take(pgm.len() / 2).any(|&v| v < 50));
+}
+
+#[test]
+fn an_emulated_ld06_is_mapped_live_and_damage_and_loss_are_counted() {
+    // Four seconds of data with one packet in ten damaged, then the terminal closes.
+    let emulator = emulate(&["--duration", "4", "--corrupt-every", "10"]);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("live");
+    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(["run", "--lidar", &format!("ld06:{}", emulator.path)])
+        .args(["--duration", "7", "--out"])
+        .arg(&out)
+        .output()
+        .expect("cloi run");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let r = report(&out);
+    println!("{}", r["device"]);
+    let device = &r["device"];
+    let n = |k: &str| device[k].as_u64().expect(k);
+    assert!(n("scans") >= 10, "{device}");
+    // One packet in ten: each fails its CRC and none is taken for a good one.
+    let (good, bad) = (n("packets"), n("crc_errors"));
+    assert!(
+        bad > 0 && bad * 9 <= good + 9 && good <= bad * 9 + 9,
+        "{device}"
+    );
+    // The emulator's end is a device that went away; the run waited and ended on time.
+    assert!(n("read_errors") >= 1, "{device}");
+    assert!(stderr.contains("damaged packets"), "{stderr}");
+    check_outputs(&out, &r);
+}
+
+#[test]
+fn sigint_ends_a_live_run_with_every_output() {
+    let emulator = emulate(&["--duration", "120"]);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("live");
+    let mut run = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args([
+            "-q",
+            "run",
+            "--lidar",
+            &format!("ld06:{}", emulator.path),
+            "--out",
+        ])
+        .arg(&out)
+        .spawn()
+        .expect("cloi run");
+    std::thread::sleep(Duration::from_secs(4));
+    let kill = Command::new("kill")
+        .args(["-INT", &run.id().to_string()])
+        .status()
+        .expect("kill");
+    assert!(kill.success());
+    let stopped = Instant::now();
+    let status = loop {
+        if let Some(s) = run.try_wait().expect("wait") {
+            break s;
+        }
+        assert!(
+            stopped.elapsed() < Duration::from_secs(30),
+            "no exit after SIGINT"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(status.success(), "{status}");
+    let r = report(&out);
+    assert!(r["scans"].as_u64().expect("scans") >= 5, "{r}");
+    check_outputs(&out, &r);
+}
+
+#[test]
+fn a_missing_device_is_a_clear_error() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args([
+            "run",
+            "--lidar",
+            "ld06:/dev/cloi-no-such-port",
+            "--duration",
+            "1",
+        ])
+        .arg("--out")
+        .arg(tmp.path())
+        .output()
+        .expect("cloi run");
+    assert!(!o.status.success());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        stderr.contains("opening the LiDAR's serial port /dev/cloi-no-such-port"),
+        "{stderr}"
+    );
+}
