@@ -1,7 +1,7 @@
 //! `cloi run` against a device: the emulated LD06 of `cloi emulate ld06` on a pseudo-terminal
 //! (issue 18). Mapped live from scans alone; damaged packets and a device that goes away are
-//! counted while the run goes on; Ctrl-C (SIGINT) ends a run with every output written; a
-//! device that is not there is a clear error.
+//! counted while the run goes on; the recording of a run maps again with `cloi map`; Ctrl-C
+//! (SIGINT) ends a run with every output written; a device that is not there is a clear error.
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -72,9 +72,12 @@ fn an_emulated_ld06_is_mapped_live_and_damage_and_loss_are_counted() {
     let emulator = emulate(&["--duration", "4", "--corrupt-every", "10"]);
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("live");
+    let recording = tmp.path().join("run.mcap");
     let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
         .args(["run", "--lidar", &format!("ld06:{}", emulator.path)])
-        .args(["--duration", "7", "--out"])
+        .args(["--lidar-offset", "0.1,0,0", "--duration", "7", "--record"])
+        .arg(&recording)
+        .arg("--out")
         .arg(&out)
         .output()
         .expect("cloi run");
@@ -95,6 +98,25 @@ fn an_emulated_ld06_is_mapped_live_and_damage_and_loss_are_counted() {
     assert!(n("read_errors") >= 1, "{device}");
     assert!(stderr.contains("damaged packets"), "{stderr}");
     check_outputs(&out, &r);
+    // The recording holds every scan, with the mounting, and maps again.
+    assert_eq!(n("recorded"), n("scans"), "{device}");
+    let again = tmp.path().join("again");
+    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(["-q", "map"])
+        .arg(&recording)
+        .args(["--deterministic", "--profile", "home", "--out"])
+        .arg(&again)
+        .output()
+        .expect("cloi map");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let replay = report(&again);
+    assert_eq!(replay["scans"].as_u64(), Some(n("scans")), "{replay}");
+    assert_eq!(replay["scans_rejected"].as_u64(), Some(0), "{replay}");
+    assert_eq!(
+        replay["input"]["laser_offset"],
+        serde_json::json!([0.1, 0.0, 0.0]),
+        "{replay}"
+    );
 }
 
 #[test]

@@ -9,12 +9,15 @@
 //! * [`ImageView`]: a camera picture over `&[u8]` (mono8, rgb8, bgr8).
 //! * [`ld06`]: the LDRobot LD06 / LD19 serial LiDAR protocol: packets decoded byte by byte,
 //!   points gathered into whole revolutions.
+//! * [`mpu6050`]: the MPU-6050 family's gyro on an `embedded-hal` I2C bus, and its bias
+//!   measured at standstill.
 //! * [`log`]: the compact binary sensor log (`.cloilog`) streamed to the firmware, with its
 //!   encoder and a streaming, allocation-free decoder.
 
 mod image;
 pub mod ld06;
 pub mod log;
+pub mod mpu6050;
 mod odometry;
 mod scan;
 mod time;

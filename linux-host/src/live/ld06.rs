@@ -10,6 +10,10 @@
 //! * **Damage**: bytes before a packet start, CRC failures and impossible angles are counted
 //!   (the core's [`Ld06Counters`]); the first revolution (the device was mid-turn when reading
 //!   began) and revolutions with fewer than [`MIN_POINTS`] returns are counted and dropped.
+//! * **Recording** (`cloi run --record FILE.mcap`): every scan sent on is also written to a ROS 2
+//!   bag (`/scan` as `sensor_msgs/LaserScan` in frame `laser`, the mounting once on
+//!   `/tf_static`), which `cloi map FILE.mcap` replays; a write that fails stops the recording
+//!   with a warning, not the run.
 //! * **A device that goes away** (unplugged, its port closed): the read error is counted and
 //!   the port is opened again every [`REOPEN`] until it answers or the run stops; the mapper
 //!   meanwhile waits for scans, and resumes with the next one.
@@ -25,6 +29,8 @@ use cloi_core::sensor::ld06::{Ld06Counters, PacketReader, Revolution};
 use cloi_core::Se2;
 use serde::Serialize;
 
+use crate::io::bag::BagWriter;
+use crate::io::ros2::{Header, LaserScan, TfMessage, Time, Transform, TransformStamped};
 use crate::map::input::{ScanEvent, SensorEvent};
 
 /// Beams of a scan: one per degree (the LD06 measures about 450 points a turn; the nearer of
@@ -64,6 +70,8 @@ pub struct DeviceCounters {
     pub read_errors: u64,
     /// Times the port was opened again after a failure.
     pub reopened: u64,
+    /// Scans written to the recording.
+    pub recorded: u64,
 }
 
 impl DeviceCounters {
@@ -84,6 +92,8 @@ pub struct Ld06Port {
     pub baud: u32,
     /// Pose of the LiDAR on the robot.
     pub mounting: Se2,
+    /// Write every scan to this bag as well.
+    pub record: Option<std::path::PathBuf>,
 }
 
 impl Ld06Port {
@@ -107,11 +117,19 @@ impl Ld06Port {
         let port = self
             .open()
             .with_context(|| format!("opening the LiDAR's serial port {}", self.path))?;
+        let recorder = match &self.record {
+            Some(path) => Some(Recorder::create(path, self.mounting)?),
+            None => None,
+        };
         std::thread::Builder::new()
             .name("cloi-ld06".into())
             .spawn(move || {
-                self.read_until_stopped(port, &tx, &stop, &counters);
-                Ok(())
+                let mut recorder = recorder;
+                self.read_until_stopped(port, &tx, &stop, &counters, &mut recorder);
+                match recorder {
+                    Some(r) => r.finish(),
+                    None => Ok(()),
+                }
             })
             .context("starting the LiDAR thread")
     }
@@ -122,6 +140,7 @@ impl Ld06Port {
         tx: &SyncSender<Result<SensorEvent>>,
         stop: &AtomicBool,
         counters: &Mutex<DeviceCounters>,
+        recorder: &mut Option<Recorder>,
     ) {
         let count = |f: &mut dyn FnMut(&mut DeviceCounters)| {
             f(&mut counters
@@ -164,6 +183,15 @@ impl Ld06Port {
                         c.scans += scans.len() as u64;
                     });
                     for scan in scans {
+                        if let Some(r) = recorder.as_mut() {
+                            match r.scan(&scan) {
+                                Ok(()) => count(&mut |c| c.recorded += 1),
+                                Err(e) => {
+                                    log::warn!("recording stopped: {e:#}");
+                                    *recorder = None;
+                                }
+                            }
+                        }
                         if tx.send(Ok(SensorEvent::Scan(scan))).is_err() {
                             return;
                         }
@@ -178,6 +206,61 @@ impl Ld06Port {
                 }
             }
         }
+    }
+}
+
+/// The bag a live run is recorded into.
+struct Recorder {
+    bag: BagWriter,
+    mounting: Se2,
+    tf_written: bool,
+    previous: Option<i64>,
+}
+
+impl Recorder {
+    fn create(path: &std::path::Path, mounting: Se2) -> Result<Self> {
+        Ok(Recorder {
+            bag: BagWriter::create(path)
+                .with_context(|| format!("creating the recording {}", path.display()))?,
+            mounting,
+            tf_written: false,
+            previous: None,
+        })
+    }
+
+    fn scan(&mut self, scan: &ScanEvent) -> Result<()> {
+        if !std::mem::replace(&mut self.tf_written, true) {
+            let m = self.mounting;
+            let tf = TfMessage {
+                transforms: vec![TransformStamped {
+                    header: Header::new(Time::from_nanos(scan.t_ns), "base_link"),
+                    child_frame_id: "laser".into(),
+                    transform: Transform::planar(m.x, m.y, m.theta),
+                }],
+            };
+            self.bag.write("/tf_static", scan.t_ns, &tf)?;
+        }
+        let scan_time = self
+            .previous
+            .replace(scan.t_ns)
+            .map_or(0.0, |p| (scan.t_ns - p) as f32 * 1e-9);
+        let msg = LaserScan {
+            header: Header::new(Time::from_nanos(scan.t_ns), "laser"),
+            angle_min: scan.angle_min,
+            angle_max: scan.angle_min + scan.angle_increment * (scan.ranges.len() - 1) as f32,
+            angle_increment: scan.angle_increment,
+            time_increment: scan.time_increment,
+            scan_time,
+            range_min: scan.range_min,
+            range_max: scan.range_max,
+            ranges: scan.ranges.clone(),
+            intensities: Vec::new(),
+        };
+        self.bag.write("/scan", scan.t_ns, &msg)
+    }
+
+    fn finish(self) -> Result<()> {
+        self.bag.finish().map(|_| ())
     }
 }
 

@@ -91,6 +91,9 @@ pub struct RunArgs {
     /// Pose of the LiDAR on the robot, `X,Y,THETA` (m, m, rad).
     #[arg(long, value_name = "X,Y,THETA", value_parser = parse_pose, allow_hyphen_values = true)]
     pub lidar_offset: Option<Se2>,
+    /// Also record every scan to this ROS 2 bag (`cloi map FILE` replays it).
+    #[arg(long, value_name = "FILE.mcap")]
+    pub record: Option<PathBuf>,
     /// Stop after this many seconds (default: at SIGINT or SIGTERM).
     #[arg(long)]
     pub duration: Option<f64>,
@@ -140,6 +143,7 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
         path: args.lidar.path.clone(),
         baud: args.lidar.baud,
         mounting: args.lidar_offset.unwrap_or(Se2::IDENTITY),
+        record: args.record.clone(),
     };
     let thread = device.start(tx, Arc::clone(&stop), Arc::clone(&counters))?;
     if let Some(d) = args.duration {
