@@ -244,8 +244,16 @@ mod tests {
     fn the_chip_is_set_up_and_its_yaw_rate_read_in_radians() {
         let mut t = configured();
         // 65.5 LSB per deg/s at +-500: 6550 counts are 100 deg/s, -655 are -10 deg/s.
-        t.push(Transaction::write_read(0x68, vec![GYRO_ZOUT_H], vec![0x19, 0x96]));
-        t.push(Transaction::write_read(0x68, vec![GYRO_ZOUT_H], vec![0xFD, 0x71]));
+        t.push(Transaction::write_read(
+            0x68,
+            vec![GYRO_ZOUT_H],
+            vec![0x19, 0x96],
+        ));
+        t.push(Transaction::write_read(
+            0x68,
+            vec![GYRO_ZOUT_H],
+            vec![0xFD, 0x71],
+        ));
         let mut i2c = Mock::new(&t);
         let mut g = Mpu6050::probe(i2c.clone(), DEFAULT_ADDRESS).expect("found");
         g.reset().expect("reset");
