@@ -33,6 +33,7 @@ use cloi_core::profile::{AirportResources, HomeResources, OfficeResources, AIRPO
 use cloi_core::Se2;
 use cloi_host::eval::relations::{relations_from_reference, score, PlanarTrajectory};
 use cloi_host::io::convert::carmen_to_bag;
+use cloi_host::map::output::proc_status_bytes;
 
 fn map(log: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
     let mut args = vec![
@@ -228,20 +229,6 @@ fn intel_maps_within_each_profiles_memory_ceiling() {
     }
 }
 
-/// Resident memory of process `pid` (Linux's `VmRSS`), bytes; `None` once it has exited.
-fn rss_bytes(pid: u32) -> Option<u64> {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
-    let kb = status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))?
-        .trim()
-        .strip_suffix("kB")?
-        .trim()
-        .parse::<u64>()
-        .ok()?;
-    Some(kb * 1024)
-}
-
 /// A soak (issue 19): `cloi map` over four hours of the simulated home in the home profile,
 /// its resident memory sampled every 50 ms. Mapping a place for longer must not cost more
 /// memory: from the middle of the run (the graph has been pruned for an hour by then) to 95 %
@@ -266,7 +253,7 @@ fn four_hours_of_the_home_keep_memory_flat() {
         if let Some(status) = child.try_wait().expect("wait") {
             break status;
         }
-        if let Some(rss) = rss_bytes(child.id()) {
+        if let Some(rss) = proc_status_bytes(&child.id().to_string(), "VmRSS") {
             samples.push(rss);
         }
         std::thread::sleep(std::time::Duration::from_millis(50));

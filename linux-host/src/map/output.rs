@@ -432,10 +432,16 @@ pub fn peak_heap_bytes() -> Option<u64> {
 /// The process's peak resident memory so far (`VmHWM` of `/proc/self/status`), bytes; `None`
 /// where the kernel does not tell.
 pub fn peak_rss_bytes() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    proc_status_bytes("self", "VmHWM")
+}
+
+/// A memory line (`VmRSS`, `VmHWM`, ...) of `/proc/PROCESS/status` (`PROCESS`: a process id,
+/// or `self`), bytes; `None` where the kernel does not tell or the process has ended.
+pub fn proc_status_bytes(process: &str, key: &str) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{process}/status")).ok()?;
     let kb = status
         .lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))?
+        .find_map(|l| l.strip_prefix(key)?.strip_prefix(':'))?
         .trim()
         .strip_suffix("kB")?
         .trim()
