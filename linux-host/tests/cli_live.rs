@@ -120,6 +120,38 @@ fn an_emulated_ld06_is_mapped_live_and_damage_and_loss_are_counted() {
 }
 
 #[test]
+fn a_device_that_comes_back_is_opened_again_and_mapping_resumes() {
+    // The run reads a link; the first device's data ends after 3 s, then the link points at a
+    // second device (a LiDAR unplugged and plugged in again under the same name).
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let link = tmp.path().join("ld06");
+    let first = emulate(&["--duration", "3"]);
+    std::os::unix::fs::symlink(&first.path, &link).expect("link");
+    let out = tmp.path().join("live");
+    let run = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(["-q", "run", "--lidar"])
+        .arg(format!("ld06:{}", link.display()))
+        .args(["--duration", "9", "--out"])
+        .arg(&out)
+        .spawn()
+        .expect("cloi run");
+    std::thread::sleep(Duration::from_secs(4));
+    let second = emulate(&["--duration", "60", "--seed", "2"]);
+    std::fs::remove_file(&link).expect("unlink");
+    std::os::unix::fs::symlink(&second.path, &link).expect("link again");
+    let status = run.wait_with_output().expect("cloi run ends").status;
+    assert!(status.success(), "{status}");
+    drop(first);
+    let r = report(&out);
+    let device = &r["device"];
+    assert!(device["read_errors"].as_u64() >= Some(1), "{device}");
+    assert!(device["reopened"].as_u64() >= Some(1), "{device}");
+    // Scans from both devices: more than the first one's three seconds at 10 Hz hold.
+    assert!(device["scans"].as_u64() > Some(35), "{device}");
+    check_outputs(&out, &r);
+}
+
+#[test]
 fn sigint_ends_a_live_run_with_every_output() {
     let emulator = emulate(&["--duration", "120"]);
     let tmp = tempfile::tempdir().expect("tempdir");
