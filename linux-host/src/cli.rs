@@ -84,6 +84,9 @@ pub enum Command {
 pub enum EmulateCommand {
     /// An LDRobot LD06 (LD19): prints the terminal's path, then sends the simulated scans.
     Ld06(crate::live::emulate::EmulateArgs),
+    /// A Slamtec RPLIDAR: prints the terminal's path, then answers scan requests with the
+    /// simulated scans.
+    Rplidar(crate::live::emulate::EmulateArgs),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -103,6 +106,11 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Localize(args) => crate::map::command::run_localize(&args, cli.quiet, out),
         Command::ShowMap(args) => crate::map::show::run(&args, out),
         Command::Run(args) => crate::live::run(&args, cli.quiet, out),
-        Command::Emulate(EmulateCommand::Ld06(args)) => crate::live::emulate::run(&args, out),
+        Command::Emulate(EmulateCommand::Ld06(args)) => {
+            crate::live::emulate::run(crate::live::LidarKind::Ld06, &args, out)
+        }
+        Command::Emulate(EmulateCommand::Rplidar(args)) => {
+            crate::live::emulate::run(crate::live::LidarKind::Rplidar, &args, out)
+        }
     }
 }

@@ -22,8 +22,12 @@ impl Drop for Emulator {
 }
 
 fn emulate(args: &[&str]) -> Emulator {
+    emulate_kind("ld06", args)
+}
+
+fn emulate_kind(kind: &str, args: &[&str]) -> Emulator {
     let mut child = Command::new(env!("CARGO_BIN_EXE_cloi"))
-        .args(["emulate", "ld06", "--world", "home"])
+        .args(["emulate", kind, "--world", "home"])
         .args(args)
         .stdout(Stdio::piped())
         .spawn()
@@ -34,8 +38,8 @@ fn emulate(args: &[&str]) -> Emulator {
         .expect("the emulator prints its terminal");
     let path = line
         .trim()
-        .strip_prefix("ld06 on ")
-        .expect("`ld06 on PATH`")
+        .strip_prefix(&format!("{kind} on "))
+        .expect("`KIND on PATH`")
         .to_owned();
     Emulator { child, path }
 }
@@ -117,6 +121,36 @@ fn an_emulated_ld06_is_mapped_live_and_damage_and_loss_are_counted() {
         serde_json::json!([0.1, 0.0, 0.0]),
         "{replay}"
     );
+}
+
+#[test]
+fn an_emulated_rplidar_is_asked_to_scan_and_mapped() {
+    // One node in fifty with its check bit broken: the reader finds the node grid again.
+    let emulator = emulate_kind("rplidar", &["--duration", "60", "--corrupt-every", "50"]);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("live");
+    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args([
+            "-q",
+            "run",
+            "--lidar",
+            &format!("rplidar:{}", emulator.path),
+        ])
+        .args(["--duration", "5", "--out"])
+        .arg(&out)
+        .output()
+        .expect("cloi run");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out);
+    let device = &r["device"];
+    let n = |k: &str| device[k].as_u64().expect(k);
+    // The emulator streams only after the scan request: every node came after it.
+    assert!(
+        n("scans") >= 10 && n("nodes") >= 300 * n("scans"),
+        "{device}"
+    );
+    assert!(n("skipped_bytes") > 0 && n("packets") == 0, "{device}");
+    check_outputs(&out, &r);
 }
 
 #[test]

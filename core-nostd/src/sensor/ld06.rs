@@ -270,26 +270,46 @@ impl<const N: usize> Revolution<N> {
         let mut done = None;
         for (i, p) in packet.points.iter().enumerate() {
             let a = packet.angle_cdeg(i);
-            if self.last_cdeg.is_some_and(|last| a + 18_000 < last) && self.points > 0 {
-                out.copy_from_slice(&self.ranges);
-                done = Some(self.points);
-                self.ranges = [f32::NAN; N];
-                self.points = 0;
+            let wrapped = self.last_cdeg.is_some_and(|last| a + 18_000 < last);
+            if let Some(n) = self.point(a, p.distance_mm, wrapped, out) {
+                done = Some(n);
             }
-            self.last_cdeg = Some(a);
-            if p.distance_mm == 0 || N == 0 {
-                continue;
-            }
-            // Clockwise device angle to counter-clockwise beam.
-            let ccw = (u32::from(FULL_TURN) - a) % u32::from(FULL_TURN);
-            let beam = libm::roundf(ccw as f32 * N as f32 / f32::from(FULL_TURN)) as usize % N;
-            let r = f32::from(p.distance_mm) / 1000.0;
-            let slot = &mut self.ranges[beam];
-            if slot.is_nan() || r < *slot {
-                *slot = r;
-            }
-            self.points += 1;
         }
+        done
+    }
+
+    /// Adds one point at the clockwise device angle `cw_cdeg` (0.01 degree) and distance
+    /// `distance_mm` (0: no return). `new_turn` says the point begins the next revolution (the
+    /// device's flag, or the angle passing zero): the revolution so far is then copied to `out`
+    /// and its number of points returned.
+    pub fn point(
+        &mut self,
+        cw_cdeg: u32,
+        distance_mm: u16,
+        new_turn: bool,
+        out: &mut [f32; N],
+    ) -> Option<u32> {
+        let mut done = None;
+        if new_turn && self.points > 0 {
+            out.copy_from_slice(&self.ranges);
+            done = Some(self.points);
+            self.ranges = [f32::NAN; N];
+            self.points = 0;
+        }
+        let a = cw_cdeg % u32::from(FULL_TURN);
+        self.last_cdeg = Some(a);
+        if distance_mm == 0 || N == 0 {
+            return done;
+        }
+        // Clockwise device angle to counter-clockwise beam.
+        let ccw = (u32::from(FULL_TURN) - a) % u32::from(FULL_TURN);
+        let beam = libm::roundf(ccw as f32 * N as f32 / f32::from(FULL_TURN)) as usize % N;
+        let r = f32::from(distance_mm) / 1000.0;
+        let slot = &mut self.ranges[beam];
+        if slot.is_nan() || r < *slot {
+            *slot = r;
+        }
+        self.points += 1;
         done
     }
 }

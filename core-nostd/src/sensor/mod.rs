@@ -9,6 +9,8 @@
 //! * [`ImageView`]: a camera picture over `&[u8]` (mono8, rgb8, bgr8).
 //! * [`ld06`]: the LDRobot LD06 / LD19 serial LiDAR protocol: packets decoded byte by byte,
 //!   points gathered into whole revolutions.
+//! * [`rplidar`]: the Slamtec RPLIDAR (A1, A2, C1) standard scan: requests, descriptor and
+//!   nodes decoded byte by byte, gathered into the same revolutions as the LD06's points.
 //! * [`mpu6050`]: the MPU-6050 family's gyro on an `embedded-hal` I2C bus, and its bias
 //!   measured at standstill.
 //! * [`log`]: the compact binary sensor log (`.cloilog`) streamed to the firmware, with its
@@ -19,6 +21,7 @@ pub mod ld06;
 pub mod log;
 pub mod mpu6050;
 mod odometry;
+pub mod rplidar;
 mod scan;
 mod time;
 

@@ -1,6 +1,6 @@
 //! The live path (issue 18): `cloi run` maps from devices on the robot. A device thread
 //! turns what the device sends into the same events a file gives `cloi map` (module
-//! [`ld06`]: an LDRobot LD06 / LD19 on a serial port), and the run goes through the same
+//! [`serial_lidar`]: an LDRobot LD06 / LD19 or a Slamtec RPLIDAR on a serial port), and the run goes through the same
 //! feeding path, mapper and outputs ([`crate::map::command`]), in the two-thread schedule.
 //! It ends after `--duration` seconds or at SIGINT / SIGTERM (Ctrl-C), and writes what
 //! `cloi map` writes, with the device's counters under `device` in `report.json`.
@@ -8,7 +8,7 @@
 //! [`emulate`] is a simulated LD06 on a pseudo-terminal, to try it without the device.
 
 pub mod emulate;
-pub mod ld06;
+pub mod serial_lidar;
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -26,7 +26,7 @@ use crate::map::command::{execute_input, MapArgs};
 use crate::map::config::Profile;
 use crate::map::input::{thread_input, InputArgs, InputSize};
 use crate::map::run::StampPolicy;
-use ld06::{DeviceCounters, Ld06Port};
+use serial_lidar::{DeviceCounters, SerialLidar};
 
 /// Events waiting between the device thread and the mapper (a few seconds of scans).
 const CHANNEL: usize = 64;
@@ -34,7 +34,7 @@ const CHANNEL: usize = 64;
 /// A LiDAR given as `KIND:PATH[@BAUD]`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct LidarSpec {
-    /// The protocol (`ld06`; `ld19` is the same protocol).
+    /// The protocol (`ld06`, `ld19`: the same protocol; `rplidar`).
     pub kind: LidarKind,
     /// Device path.
     pub path: String,
@@ -45,8 +45,21 @@ pub struct LidarSpec {
 /// Protocols `cloi run` reads.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum LidarKind {
-    /// LDRobot LD06 or LD19 (47-byte packets, CRC-8).
+    /// LDRobot LD06 or LD19 (47-byte packets, CRC-8; 230400 baud).
     Ld06,
+    /// Slamtec RPLIDAR A1, A2 or C1, standard scan (5-byte nodes; 115200 baud, the A1's and
+    /// the A2M8's; give `@460800` for a C1, `@256000` for an A2M12).
+    Rplidar,
+}
+
+impl LidarKind {
+    /// The serial speed when none is given.
+    pub fn default_baud(self) -> u32 {
+        match self {
+            LidarKind::Ld06 => 230_400,
+            LidarKind::Rplidar => 115_200,
+        }
+    }
 }
 
 impl FromStr for LidarSpec {
@@ -58,7 +71,12 @@ impl FromStr for LidarSpec {
             .ok_or_else(|| format!("`{s}`: expected KIND:PATH[@BAUD], e.g. ld06:/dev/ttyUSB0"))?;
         let kind = match kind {
             "ld06" | "ld19" => LidarKind::Ld06,
-            other => return Err(format!("unknown LiDAR kind `{other}` (known: ld06, ld19)")),
+            "rplidar" => LidarKind::Rplidar,
+            other => {
+                return Err(format!(
+                    "unknown LiDAR kind `{other}` (known: ld06, ld19, rplidar)"
+                ))
+            }
         };
         let (path, baud) = match rest.rsplit_once('@') {
             Some((path, baud)) => (
@@ -68,7 +86,7 @@ impl FromStr for LidarSpec {
                     .filter(|&b| b > 0)
                     .ok_or_else(|| format!("`{baud}` is not a serial speed"))?,
             ),
-            None => (rest, ld06::DEFAULT_BAUD),
+            None => (rest, kind.default_baud()),
         };
         if path.is_empty() {
             return Err(format!("`{s}`: the device path is missing"));
@@ -85,7 +103,7 @@ impl FromStr for LidarSpec {
 #[derive(Debug, Args)]
 pub struct RunArgs {
     /// The LiDAR, `KIND:PATH[@BAUD]`: `ld06:/dev/ttyUSB0` (LDRobot LD06 or LD19, 230400
-    /// baud unless given).
+    /// baud unless given) or `rplidar:/dev/ttyUSB0` (Slamtec RPLIDAR A1/A2/C1, 115200).
     #[arg(long, value_name = "KIND:PATH[@BAUD]")]
     pub lidar: LidarSpec,
     /// Pose of the LiDAR on the robot, `X,Y,THETA` (m, m, rad).
@@ -138,8 +156,8 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
     }
     let counters = Arc::new(Mutex::new(DeviceCounters::default()));
     let (tx, rx) = std::sync::mpsc::sync_channel(CHANNEL);
-    let LidarKind::Ld06 = args.lidar.kind;
-    let device = Ld06Port {
+    let device = SerialLidar {
+        kind: args.lidar.kind,
         path: args.lidar.path.clone(),
         baud: args.lidar.baud,
         mounting: args.lidar_offset.unwrap_or(Se2::IDENTITY),
@@ -218,9 +236,11 @@ mod tests {
         assert_eq!((s.path.as_str(), s.baud), ("/dev/ttyUSB0", 230_400));
         let s: LidarSpec = "ld19:/dev/pts/3@115200".parse().expect("parses");
         assert_eq!((s.path.as_str(), s.baud), ("/dev/pts/3", 115_200));
+        let s: LidarSpec = "rplidar:/dev/ttyUSB1".parse().expect("parses");
+        assert_eq!((s.kind, s.baud), (LidarKind::Rplidar, 115_200));
         for bad in [
             "ld06",
-            "rplidar:/dev/x",
+            "urg:/dev/x",
             "ld06:",
             "ld06:/dev/x@fast",
             "ld06:/dev/x@0",

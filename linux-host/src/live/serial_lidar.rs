@@ -1,24 +1,31 @@
-//! An LDRobot LD06 / LD19 on a serial port as a stream of scans: a thread reads the port,
-//! decodes its packets with the core's [`PacketReader`] and gathers them into revolutions of
+//! A serial LiDAR as a stream of scans: a thread reads the port, decodes what the device sends
+//! with the core's parser for its protocol and gathers the points into revolutions of
 //! [`BEAMS`] beams ([`Revolution`]), each sent on as one scan.
 //!
-//! * **Time**: a revolution is stamped with the host's clock when its last packet arrived,
-//!   less half a turn (the time its beams were measured around); the device's own millisecond
-//!   counter wraps every 30 s and is not used. The beams are not deskewed: the head turns
-//!   clockwise while the beams count counter-clockwise from angle zero, so their times do not
-//!   follow their order and a scan's `time_increment` cannot describe them.
-//! * **Damage**: bytes before a packet start, CRC failures and impossible angles are counted
-//!   (the core's [`Ld06Counters`]); the first revolution (the device was mid-turn when reading
-//!   began) and revolutions with fewer than [`MIN_POINTS`] returns are counted and dropped.
+//! * **Protocols**: the LDRobot LD06 / LD19 streams 47-byte packets as soon as it is powered
+//!   ([`cloi_core::sensor::ld06`]); the Slamtec RPLIDAR (A1, A2, C1) is asked for a standard
+//!   scan (stop, then scan, then its 7-byte descriptor is checked) and streams 5-byte nodes
+//!   ([`cloi_core::sensor::rplidar`]); it is told to stop when the run ends. A turn ends where
+//!   the LD06's angle passes zero or the RPLIDAR flags a new turn.
+//! * **Time**: a revolution is stamped with the host's clock when its last point arrived, less
+//!   half a turn (the time its beams were measured around; the turn's length from the LD06's
+//!   speed field, or from the host's clock between turns); the devices' own counters are not
+//!   used. The beams are not deskewed: the heads turn clockwise while the beams count
+//!   counter-clockwise from angle zero, so their times do not follow their order and a scan's
+//!   `time_increment` cannot describe them.
+//! * **Damage**: bytes before a packet start, CRC failures and impossible angles (LD06), bytes
+//!   off the node grid (RPLIDAR) are counted; the first revolution (the device was mid-turn
+//!   when reading began) and revolutions with fewer than [`MIN_POINTS`] returns are counted
+//!   and dropped.
 //! * **Recording** (`cloi run --record FILE.mcap`): every scan sent on is also written to a ROS 2
 //!   bag (`/scan` as `sensor_msgs/LaserScan` in frame `laser`, the mounting once on
 //!   `/tf_static`), which `cloi map FILE.mcap` replays; a write that fails stops the recording
 //!   with a warning, not the run.
 //! * **A device that goes away** (unplugged, its port closed): the read error is counted and
-//!   the port is opened again every [`REOPEN`] until it answers or the run stops; the mapper
-//!   meanwhile waits for scans, and resumes with the next one.
+//!   the port is opened (and an RPLIDAR started) again every [`REOPEN`] until it answers or the
+//!   run stops; the mapper meanwhile waits for scans, and resumes with the next one.
 
-use std::io::Read;
+use std::io::{Read, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
@@ -26,6 +33,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use anyhow::{Context, Result};
 use cloi_core::sensor::ld06::{Ld06Counters, PacketReader, Revolution};
+use cloi_core::sensor::rplidar::{self, NodeReader};
 use cloi_core::Se2;
 use serde::Serialize;
 
@@ -33,8 +41,8 @@ use crate::io::bag::BagWriter;
 use crate::io::ros2::{Header, LaserScan, TfMessage, Time, Transform, TransformStamped};
 use crate::map::input::{ScanEvent, SensorEvent};
 
-/// Beams of a scan: one per degree (the LD06 measures about 450 points a turn; the nearer of
-/// two in one beam is kept).
+/// Beams of a scan: one per degree (the LD06 measures about 450 points a turn, an RPLIDAR A1
+/// about 360 to 1,450; the nearer of two in one beam is kept).
 pub const BEAMS: usize = 360;
 /// Fewer returns than this in a revolution: no scan (a blocked or stopping head).
 pub const MIN_POINTS: u32 = 60;
@@ -42,8 +50,10 @@ pub const MIN_POINTS: u32 = 60;
 pub const RANGE_MIN: f32 = 0.02;
 /// See [`RANGE_MIN`].
 pub const RANGE_MAX: f32 = 12.0;
-/// The LD06's serial speed.
-pub const DEFAULT_BAUD: u32 = 230_400;
+/// Shortest and longest ranges of an RPLIDAR A1 / A2 / C1, metres (the C1's and A2's 12 m).
+pub const RPLIDAR_RANGE: [f32; 2] = [0.15, 12.0];
+/// How long an RPLIDAR may take to answer a scan request with its descriptor.
+const DESCRIPTOR_WAIT: Duration = Duration::from_secs(2);
 /// Wait between attempts to open a port that went away.
 pub const REOPEN: Duration = Duration::from_millis(250);
 /// Longest wait of one read, so that a stop request is seen promptly.
@@ -62,6 +72,8 @@ pub struct DeviceCounters {
     pub skipped_bytes: u64,
     /// Packets with an angle of a full turn or more.
     pub bad_angles: u64,
+    /// RPLIDAR nodes decoded.
+    pub nodes: u64,
     /// Whole revolutions sent on as scans.
     pub scans: u64,
     /// Revolutions dropped: the partial first one after (re)opening, or too few returns.
@@ -75,17 +87,29 @@ pub struct DeviceCounters {
 }
 
 impl DeviceCounters {
-    fn add_reader(&mut self, before: Ld06Counters, after: Ld06Counters) {
-        self.packets += after.packets - before.packets;
-        self.crc_errors += after.crc_errors - before.crc_errors;
-        self.skipped_bytes += after.skipped_bytes - before.skipped_bytes;
-        self.bad_angles += after.bad_angles - before.bad_angles;
+    /// Adds what a decoder met between two readings of its counters.
+    fn add(&mut self, before: DecoderCounters, after: DecoderCounters) {
+        self.packets += after.ld06.packets - before.ld06.packets;
+        self.crc_errors += after.ld06.crc_errors - before.ld06.crc_errors;
+        self.bad_angles += after.ld06.bad_angles - before.ld06.bad_angles;
+        self.nodes += after.rplidar.nodes - before.rplidar.nodes;
+        self.skipped_bytes += (after.ld06.skipped_bytes + after.rplidar.skipped_bytes)
+            - (before.ld06.skipped_bytes + before.rplidar.skipped_bytes);
     }
+}
+
+/// The counters of either decoder.
+#[derive(Clone, Copy, Debug, Default)]
+struct DecoderCounters {
+    ld06: Ld06Counters,
+    rplidar: rplidar::NodeCounters,
 }
 
 /// Where and how to read the device.
 #[derive(Clone, Debug, PartialEq)]
-pub struct Ld06Port {
+pub struct SerialLidar {
+    /// Its protocol.
+    pub kind: super::LidarKind,
     /// Device path (`/dev/ttyUSB0`, a pseudo-terminal).
     pub path: String,
     /// Serial speed.
@@ -96,11 +120,16 @@ pub struct Ld06Port {
     pub record: Option<std::path::PathBuf>,
 }
 
-impl Ld06Port {
-    fn open(&self) -> serialport::Result<Box<dyn serialport::SerialPort>> {
-        serialport::new(&self.path, self.baud)
+impl SerialLidar {
+    /// Opens the port and, for an RPLIDAR, starts its scan.
+    fn open(&self) -> Result<Box<dyn serialport::SerialPort>> {
+        let mut port = serialport::new(&self.path, self.baud)
             .timeout(READ_TIMEOUT)
-            .open()
+            .open()?;
+        if self.kind == super::LidarKind::Rplidar {
+            start_rplidar(port.as_mut())?;
+        }
+        Ok(port)
     }
 
     /// Opens the port (a clear error if it cannot be) and starts the thread that reads it and
@@ -122,10 +151,14 @@ impl Ld06Port {
             None => None,
         };
         std::thread::Builder::new()
-            .name("cloi-ld06".into())
+            .name("cloi-lidar".into())
             .spawn(move || {
                 let mut recorder = recorder;
-                self.read_until_stopped(port, &tx, &stop, &counters, &mut recorder);
+                let mut port = self.read_until_stopped(port, &tx, &stop, &counters, &mut recorder);
+                if let (Some(p), super::LidarKind::Rplidar) = (port.as_mut(), self.kind) {
+                    // Leave the motor stopped (best effort: the device may be gone).
+                    let _ = p.write_all(&rplidar::request(rplidar::STOP));
+                }
                 match recorder {
                     Some(r) => r.finish(),
                     None => Ok(()),
@@ -141,14 +174,14 @@ impl Ld06Port {
         stop: &AtomicBool,
         counters: &Mutex<DeviceCounters>,
         recorder: &mut Option<Recorder>,
-    ) {
+    ) -> Option<Box<dyn serialport::SerialPort>> {
         let count = |f: &mut dyn FnMut(&mut DeviceCounters)| {
             f(&mut counters
                 .lock()
                 .unwrap_or_else(std::sync::PoisonError::into_inner));
         };
         let mut port = Some(port);
-        let mut assembler = Assembler::new(self.mounting);
+        let mut assembler = Assembler::new(self.kind, self.mounting);
         let mut buf = [0u8; 512];
         let mut last_attempt = Instant::now();
         while !stop.load(Ordering::Acquire) {
@@ -158,14 +191,14 @@ impl Ld06Port {
                 if let Ok(p) = self.open() {
                     log::warn!("{}: the LiDAR answers again", self.path);
                     count(&mut |c| c.reopened += 1);
-                    assembler = Assembler::new(self.mounting);
+                    assembler = Assembler::new(self.kind, self.mounting);
                     port = Some(p);
                 }
                 continue;
             };
             match p.read(&mut buf) {
                 Ok(n) => {
-                    let before = assembler.reader.counters();
+                    let before = assembler.counters();
                     let mut scans = Vec::new();
                     let mut dropped = 0;
                     for &b in &buf[..n] {
@@ -175,10 +208,10 @@ impl Ld06Port {
                             None => {}
                         }
                     }
-                    let after = assembler.reader.counters();
+                    let after = assembler.counters();
                     count(&mut |c| {
                         c.bytes += n as u64;
-                        c.add_reader(before, after);
+                        c.add(before, after);
                         c.revolutions_dropped += dropped;
                         c.scans += scans.len() as u64;
                     });
@@ -193,7 +226,7 @@ impl Ld06Port {
                             }
                         }
                         if tx.send(Ok(SensorEvent::Scan(scan))).is_err() {
-                            return;
+                            return port;
                         }
                     }
                 }
@@ -206,7 +239,41 @@ impl Ld06Port {
                 }
             }
         }
+        port
     }
+}
+
+/// Stops whatever an RPLIDAR was doing, asks for a standard scan and checks its descriptor.
+fn start_rplidar(port: &mut dyn serialport::SerialPort) -> Result<()> {
+    port.write_all(&rplidar::request(rplidar::STOP))?;
+    // The device needs a millisecond to stop; what it sent meanwhile is stale.
+    std::thread::sleep(Duration::from_millis(10));
+    port.clear(serialport::ClearBuffer::Input)?;
+    port.write_all(&rplidar::request(rplidar::SCAN))?;
+    let until = Instant::now() + DESCRIPTOR_WAIT;
+    let mut got = Vec::with_capacity(rplidar::SCAN_DESCRIPTOR.len());
+    let mut byte = [0u8];
+    while got.len() < rplidar::SCAN_DESCRIPTOR.len() {
+        if Instant::now() > until {
+            anyhow::bail!("no scan descriptor from the RPLIDAR within {DESCRIPTOR_WAIT:?}");
+        }
+        match port.read(&mut byte) {
+            Ok(1) => {
+                got.push(byte[0]);
+                // Resynchronize on the descriptor's first byte.
+                if got[0] != rplidar::SYNC {
+                    got.clear();
+                }
+            }
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
+            Err(e) => return Err(e.into()),
+        }
+    }
+    if got != rplidar::SCAN_DESCRIPTOR {
+        anyhow::bail!("the RPLIDAR answered a scan request with {got:02X?}");
+    }
+    Ok(())
 }
 
 /// The bag a live run is recorded into.
@@ -264,54 +331,101 @@ impl Recorder {
     }
 }
 
-/// Bytes to packets to scans.
+/// A device's protocol decoder.
+#[derive(Debug)]
+enum Decoder {
+    Ld06(PacketReader),
+    Rplidar(NodeReader),
+}
+
+/// Bytes to points to scans.
 struct Assembler {
-    reader: PacketReader,
+    decoder: Decoder,
     revolution: Revolution<BEAMS>,
     ranges: [f32; BEAMS],
     /// The first revolution after (re)opening began mid-turn.
     partial: bool,
     mounting: Se2,
+    range: [f32; 2],
     last_stamp: i64,
+    /// Host time of the last turn's end, ns (the RPLIDAR's turn length).
+    last_turn: Option<i64>,
 }
 
 impl Assembler {
-    fn new(mounting: Se2) -> Self {
+    fn new(kind: super::LidarKind, mounting: Se2) -> Self {
+        let (decoder, range) = match kind {
+            super::LidarKind::Ld06 => (Decoder::Ld06(PacketReader::new()), [RANGE_MIN, RANGE_MAX]),
+            super::LidarKind::Rplidar => (Decoder::Rplidar(NodeReader::new()), RPLIDAR_RANGE),
+        };
         Assembler {
-            reader: PacketReader::new(),
+            decoder,
             revolution: Revolution::new(),
             ranges: [f32::NAN; BEAMS],
             partial: true,
             mounting,
+            range,
             last_stamp: i64::MIN,
+            last_turn: None,
+        }
+    }
+
+    fn counters(&self) -> DecoderCounters {
+        match &self.decoder {
+            Decoder::Ld06(r) => DecoderCounters {
+                ld06: r.counters(),
+                ..DecoderCounters::default()
+            },
+            Decoder::Rplidar(r) => DecoderCounters {
+                rplidar: r.counters(),
+                ..DecoderCounters::default()
+            },
         }
     }
 
     /// The next byte; a scan (or a dropped revolution) when it completed one.
     fn push(&mut self, byte: u8) -> Option<Result<ScanEvent, ()>> {
-        let packet = self.reader.push(byte)?;
-        let points = self.revolution.add(&packet, &mut self.ranges)?;
-        if std::mem::take(&mut self.partial) || points < MIN_POINTS {
-            return Some(Err(()));
-        }
-        let turn_s = if packet.speed_dps > 0 {
-            360.0 / f64::from(packet.speed_dps)
-        } else {
-            0.1
+        let (points, speed_dps) = match &mut self.decoder {
+            Decoder::Ld06(r) => {
+                let packet = r.push(byte)?;
+                (
+                    self.revolution.add(&packet, &mut self.ranges)?,
+                    packet.speed_dps,
+                )
+            }
+            Decoder::Rplidar(r) => {
+                let n = r.push(byte)?;
+                let points = self.revolution.point(
+                    n.angle_cdeg(),
+                    n.distance_mm(),
+                    n.start,
+                    &mut self.ranges,
+                )?;
+                (points, 0)
+            }
         };
         let now = SystemTime::now()
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX));
+        let previous_turn = self.last_turn.replace(now);
+        if std::mem::take(&mut self.partial) || points < MIN_POINTS {
+            return Some(Err(()));
+        }
+        let turn_ns = if speed_dps > 0 {
+            (360.0 / f64::from(speed_dps) * 1e9) as i64
+        } else {
+            previous_turn.map_or(100_000_000, |t| (now - t).clamp(1, 1_000_000_000))
+        };
         // Half a turn back; never at or before the previous scan (the clock may step back).
-        let stamp = (now - (turn_s * 0.5e9) as i64).max(self.last_stamp.saturating_add(1));
+        let stamp = (now - turn_ns / 2).max(self.last_stamp.saturating_add(1));
         self.last_stamp = stamp;
         Some(Ok(ScanEvent {
             t_ns: stamp,
             ranges: self.ranges.to_vec(),
             angle_min: 0.0,
             angle_increment: Revolution::<BEAMS>::INCREMENT,
-            range_min: RANGE_MIN,
-            range_max: RANGE_MAX,
+            range_min: self.range[0],
+            range_max: self.range[1],
             time_increment: 0.0,
             laser_offset: self.mounting,
             odom: None,
@@ -348,7 +462,7 @@ mod tests {
 
     #[test]
     fn whole_turns_become_scans_after_the_first_and_damage_is_counted() {
-        let mut a = Assembler::new(Se2::new(0.1, 0.0, 0.0));
+        let mut a = Assembler::new(super::super::LidarKind::Ld06, Se2::new(0.1, 0.0, 0.0));
         let mut bytes = turns(4, 2000);
         // One flipped bit in the third turn's first packet.
         bytes[2 * 38 * 47 + 10] ^= 0x10;
@@ -362,7 +476,7 @@ mod tests {
         }
         // Turns end when the next one starts: three ends seen, the first dropped.
         assert_eq!((scans.len(), dropped), (2, 1));
-        assert_eq!(a.reader.counters().crc_errors, 1);
+        assert_eq!(a.counters().ld06.crc_errors, 1);
         for s in &scans {
             assert_eq!(s.ranges.len(), BEAMS);
             let seen: Vec<f32> = s.ranges.iter().copied().filter(|r| r.is_finite()).collect();
