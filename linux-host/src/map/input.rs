@@ -1195,7 +1195,7 @@ impl SampleSink for ChannelSink {
 
 /// Events produced on another thread (the simulator, a live device) and handed over through
 /// a bounded channel; at its end, the thread's error if it failed.
-struct SimSource {
+struct ThreadSource {
     rx: Receiver<Result<SensorEvent>>,
     thread: Option<JoinHandle<Result<()>>>,
 }
@@ -1209,7 +1209,7 @@ pub fn thread_input(
     size: InputSize,
 ) -> InputStream {
     InputStream::new(
-        Box::new(SimSource {
+        Box::new(ThreadSource {
             rx,
             thread: Some(thread),
         }),
@@ -1217,17 +1217,17 @@ pub fn thread_input(
     )
 }
 
-impl EventSource for SimSource {
+impl EventSource for ThreadSource {
     fn next_event(&mut self, _stats: &mut InputStats) -> Option<Result<SensorEvent>> {
         if let Ok(item) = self.rx.recv() {
             return Some(item);
         }
-        // The simulation ended: report its failure, if any.
+        // The producer ended: report its failure, if any.
         let thread = self.thread.take()?;
         match thread.join() {
             Ok(Ok(())) => None,
             Ok(Err(e)) => Some(Err(e)),
-            Err(_) => Some(Err(anyhow::anyhow!("the simulation thread panicked"))),
+            Err(_) => Some(Err(anyhow::anyhow!("the input thread panicked"))),
         }
     }
 }
