@@ -1,17 +1,19 @@
-//! `cloi run` against a device: the emulated LD06 of `cloi emulate ld06` on a pseudo-terminal
-//! (issue 18). Mapped live from scans alone; damaged packets and a device that goes away are
-//! counted while the run goes on; the recording of a run maps again with `cloi map`; Ctrl-C
-//! (SIGINT) ends a run with every output written; a device that is not there is a clear error.
+//! `cloi run` against devices: the emulated LD06 or RPLIDAR (and Create 2 base) of `cloi
+//! emulate` on pseudo-terminals (issue 18). Mapped live from scans alone or with the base's
+//! wheel odometry; damaged packets and a device that goes away are counted while the run goes
+//! on; the recording of a run maps again with `cloi map`; Ctrl-C (SIGINT) ends a run with
+//! every output written; a device that is not there is a clear error.
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// A running emulator and the terminal it sends on.
+/// A running emulator and the terminal it sends on (and its base's, if it emulates one).
 struct Emulator {
     child: Child,
     path: String,
+    base: Option<String>,
 }
 
 impl Drop for Emulator {
@@ -32,16 +34,20 @@ fn emulate_kind(kind: &str, args: &[&str]) -> Emulator {
         .stdout(Stdio::piped())
         .spawn()
         .expect("the emulator starts");
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().expect("stdout"))
-        .read_line(&mut line)
-        .expect("the emulator prints its terminal");
-    let path = line
-        .trim()
-        .strip_prefix(&format!("{kind} on "))
-        .expect("`KIND on PATH`")
-        .to_owned();
-    Emulator { child, path }
+    let mut stdout = BufReader::new(child.stdout.take().expect("stdout"));
+    let mut terminal = |name: &str| {
+        let mut line = String::new();
+        stdout
+            .read_line(&mut line)
+            .expect("the emulator prints its terminal");
+        line.trim()
+            .strip_prefix(&format!("{name} on "))
+            .expect("`KIND on PATH`")
+            .to_owned()
+    };
+    let path = terminal(kind);
+    let base = args.contains(&"--base").then(|| terminal("create2"));
+    Emulator { child, path, base }
 }
 
 fn report(out: &Path) -> serde_json::Value {
@@ -120,6 +126,113 @@ fn an_emulated_ld06_is_mapped_live_and_damage_and_loss_are_counted() {
         replay["input"]["laser_offset"],
         serde_json::json!([0.1, 0.0, 0.0]),
         "{replay}"
+    );
+}
+
+/// The poses of a TUM trajectory file: (stamp ns, x, y, yaw).
+fn tum_poses(path: &Path) -> Vec<(i64, f64, f64, f64)> {
+    let text = std::fs::read_to_string(path).expect("trajectory");
+    text.lines()
+        .filter(|l| !l.starts_with('#'))
+        .map(|l| {
+            let v: Vec<f64> = l
+                .split_whitespace()
+                .map(|x| x.parse().expect("number"))
+                .collect();
+            let yaw = 2.0 * v[6].atan2(v[7]);
+            ((v[0] * 1e9).round() as i64, v[1], v[2], yaw)
+        })
+        .collect()
+}
+
+/// The motion from `a` to `b` in `a`'s frame: (distance, heading change).
+fn motion(a: (f64, f64, f64), b: (f64, f64, f64)) -> (f64, f64) {
+    let turn = (b.2 - a.2).sin().atan2((b.2 - a.2).cos());
+    ((b.0 - a.0).hypot(b.1 - a.1), turn)
+}
+
+#[test]
+fn an_emulated_create2_gives_the_live_map_its_wheel_odometry() {
+    // Fourteen seconds of data (the robot drives 3 m and turns); one LiDAR packet and one base
+    // frame in twenty damaged.
+    let emulator = emulate(&[
+        "--duration",
+        "14",
+        "--corrupt-every",
+        "20",
+        "--base",
+        "create2",
+    ]);
+    let base = emulator.base.clone().expect("the base's terminal");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("live");
+    let recording = tmp.path().join("run.mcap");
+    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(["run", "--lidar", &format!("ld06:{}", emulator.path)])
+        .args(["--odom", &format!("create2:{base}"), "--duration", "16"])
+        .arg("--record")
+        .arg(&recording)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("cloi run");
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{stderr}");
+    let r = report(&out);
+    println!("{}", r["base"]);
+    let b = &r["base"];
+    let n = |k: &str| b[k].as_u64().expect(k);
+    // The simulator measures the wheels at 50 Hz: a frame each time.
+    assert!(n("poses") >= 600, "{b}");
+    let (good, bad) = (n("frames"), n("checksum_errors"));
+    assert!(
+        bad > 0 && bad * 19 <= good + 19 && good <= bad * 19 + 19,
+        "{b}"
+    );
+    assert_eq!(n("poses"), good, "{b}");
+    assert!(n("read_errors") >= 1, "{b}");
+    assert!(stderr.contains("damaged frames"), "{stderr}");
+    check_outputs(&out, &r);
+    // Every pose reached the mapper, none was refused, and the scans were covered by them
+    // (the first scan may come before the first frame).
+    assert_eq!(r["input"]["odometry"].as_u64(), Some(n("poses")), "{r}");
+    assert_eq!(r["mapper"]["odometry_rejected"].as_u64(), Some(0), "{r}");
+    assert!(r["mapper"]["odometry_gaps"].as_u64() <= Some(2), "{r}");
+
+    // The recording holds both streams; the wheels' motion over the run is the LiDAR's: the
+    // encoder geometry, the turning direction and both devices' time stamps agree (within the
+    // simulated wheel odometry's own error: its heading drifts by up to 0.2 rad in 10 s).
+    assert_eq!(n("recorded"), n("poses"), "{b}");
+    let events = cloi_host::map::input::open_input(&recording, &Default::default())
+        .expect("the recording opens");
+    let odom: Vec<(i64, f64, f64, f64)> = events
+        .filter_map(|e| match e.expect("event") {
+            cloi_host::map::input::SensorEvent::Odometry { t_ns, pose } => {
+                Some((t_ns, pose.x, pose.y, pose.theta))
+            }
+            _ => None,
+        })
+        .collect();
+    assert_eq!(odom.len() as u64, n("poses"));
+    let traj = tum_poses(&out.join("trajectory.tum"));
+    let at = |t: i64| {
+        let o = odom
+            .iter()
+            .min_by_key(|o| (o.0 - t).abs())
+            .expect("odometry");
+        (o.1, o.2, o.3)
+    };
+    let (first, last) = (traj[2], traj[traj.len() - 1]);
+    let lidar = motion((first.1, first.2, first.3), (last.1, last.2, last.3));
+    let wheels = motion(at(first.0), at(last.0));
+    println!("LiDAR {lidar:?}, wheels {wheels:?}");
+    assert!(
+        lidar.0 > 2.0 && lidar.1.abs() > 0.6,
+        "the robot moved and turned: {lidar:?}"
+    );
+    assert!(
+        (lidar.0 - wheels.0).abs() < 0.05 * lidar.0 + 0.05 && (lidar.1 - wheels.1).abs() < 0.3,
+        "LiDAR {lidar:?}, wheels {wheels:?}"
     );
 }
 

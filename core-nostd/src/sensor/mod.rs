@@ -11,11 +11,14 @@
 //!   points gathered into whole revolutions.
 //! * [`rplidar`]: the Slamtec RPLIDAR (A1, A2, C1) standard scan: requests, descriptor and
 //!   nodes decoded byte by byte, gathered into the same revolutions as the LD06's points.
+//! * [`create2`]: the iRobot Create 2's Open Interface as a wheel-odometry source: the
+//!   encoder stream's requests and frames, the counts integrated into a pose.
 //! * [`mpu6050`]: the MPU-6050 family's gyro on an `embedded-hal` I2C bus, and its bias
 //!   measured at standstill.
 //! * [`log`]: the compact binary sensor log (`.cloilog`) streamed to the firmware, with its
 //!   encoder and a streaming, allocation-free decoder.
 
+pub mod create2;
 mod image;
 pub mod ld06;
 pub mod log;

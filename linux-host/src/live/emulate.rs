@@ -1,15 +1,22 @@
 //! `cloi emulate ld06` and `cloi emulate rplidar`: a simulated LD06 or RPLIDAR on a
-//! pseudo-terminal, for trying `cloi run` (and testing it) without the device. An RPLIDAR
-//! answers the requests of the standard scan (scan, stop, reset, health) as the real one does;
-//! its turn is 360 nodes, one a degree, the first flagged as a new turn. The simulator drives its robot through a world; each
-//! simulated scan (the simulator's model of the LD06: 10 Hz, 12 m) is sent as one turn of LD06 packets (clockwise, [`PACKETS_PER_TURN`] packets
-//! of 12 points, CRC-8), paced by the scans' time stamps, on the master side of a fresh
-//! pseudo-terminal whose slave path is printed first (`ld06 on /dev/pts/N`). Only the LiDAR is
-//! emulated: `cloi run` then maps from scans alone.
+//! pseudo-terminal, for trying `cloi run` (and testing it) without the device. The simulator
+//! drives its robot through a world; each simulated scan (the simulator's model of the LD06:
+//! 10 Hz, 12 m) is sent as one turn of the device, paced by the scans' time stamps, on the
+//! master side of a fresh pseudo-terminal whose slave path is printed first (`ld06 on
+//! /dev/pts/N`):
+//! * an LD06 streams from the start, clockwise, [`PACKETS_PER_TURN`] packets of 12 points with
+//!   their CRC-8;
+//! * an RPLIDAR answers the requests of the standard scan (scan, stop, reset, health) as the
+//!   real one does; its turn is 360 nodes, one a degree, the first flagged as a new turn.
 //!
-//! `--corrupt-every N` flips a bit in every N-th packet (the reader must count the CRC
-//! failure and keep the rest); the emulator ends after `--duration` seconds of data, which
-//! closes the terminal as an unplugged device would.
+//! `--base create2` also emulates the robot's base on a second terminal (`create2 on
+//! /dev/pts/M`): an iRobot Create 2 that, once its interface is started and its stream asked
+//! for, sends the wheel encoder counts of the simulated wheel odometry every time the
+//! simulator measures it. Without it `cloi run` maps from scans alone.
+//!
+//! `--corrupt-every N` flips a bit in every N-th packet and every N-th frame of the base (the
+//! reader must count the failed check and keep the rest); the emulator ends after
+//! `--duration` seconds of data, which closes the terminals as unplugged devices would.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -17,7 +24,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use clap::Args;
+use cloi_core::sensor::create2::{self, EncoderCounts, WheelGeometry};
 use cloi_core::sensor::ld06::{Ld06Packet, Ld06Point, POINTS};
+use cloi_core::Se2;
 
 use super::serial_lidar::{RANGE_MAX, RANGE_MIN, RPLIDAR_RANGE};
 use super::LidarKind;
@@ -51,6 +60,20 @@ pub struct EmulateArgs {
     /// Also write the path of the terminal to this file (for scripts).
     #[arg(long)]
     pub path_file: Option<PathBuf>,
+    /// Also emulate the robot's base on a second terminal (printed second, `create2 on
+    /// PATH`): `create2`, an iRobot Create 2 that streams its wheel encoder counts once asked.
+    #[arg(long, value_name = "KIND")]
+    pub base: Option<BaseKind>,
+    /// Also write the path of the base's terminal to this file.
+    #[arg(long)]
+    pub base_path_file: Option<PathBuf>,
+}
+
+/// Robot bases `cloi emulate` plays.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum BaseKind {
+    /// iRobot Create 2 (Open Interface, encoder packets 43 and 44).
+    Create2,
 }
 
 /// Runs the emulator of `kind` until its data ends.
@@ -65,14 +88,15 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
         LidarKind::Ld06 => "ld06",
         LidarKind::Rplidar => "rplidar",
     };
-    let (mut master, slave) = serialport::TTYPort::pair()
-        .with_context(|| format!("opening a pseudo-terminal for the emulated {name}"))?;
-    let path = serialport::SerialPort::name(&slave).context("the pseudo-terminal has no path")?;
-    writeln!(out, "{name} on {path}")?;
-    out.flush()?;
-    if let Some(file) = &args.path_file {
-        std::fs::write(file, &path).with_context(|| format!("writing {}", file.display()))?;
-    }
+    let (mut master, slave) = terminal(name, args.path_file.as_deref(), out)?;
+    let mut base = match args.base {
+        Some(BaseKind::Create2) => Some(Create2::open(
+            args.base_path_file.as_deref(),
+            args.corrupt_every,
+            out,
+        )?),
+        None => None,
+    };
     let started = Instant::now();
     let mut first: Option<i64> = None;
     let mut packets = 0u64;
@@ -91,11 +115,22 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
         ..SimConfig::default()
     };
     for event in sim_input_with(&args.world, sim)? {
-        let SensorEvent::Scan(scan) = event? else {
-            continue;
+        let event = event?;
+        let t0 = *first.get_or_insert(event.t_ns());
+        // Kinds are not exactly in stamp order (a scan is stamped at its sweep's start).
+        let due =
+            Duration::from_secs_f64(((event.t_ns() - t0) as f64 * 1e-9 / args.speed).max(0.0));
+        let scan = match event {
+            SensorEvent::Scan(scan) => scan,
+            SensorEvent::Odometry { pose, .. } => {
+                if let Some(b) = base.as_mut() {
+                    std::thread::sleep(due.saturating_sub(started.elapsed()));
+                    b.odometry(pose)?;
+                }
+                continue;
+            }
+            _ => continue,
         };
-        let t0 = *first.get_or_insert(scan.t_ns);
-        let due = Duration::from_secs_f64((scan.t_ns - t0) as f64 * 1e-9 / args.speed);
         std::thread::sleep(due.saturating_sub(started.elapsed()));
         let mut bytes = Vec::new();
         if kind == LidarKind::Rplidar {
@@ -156,6 +191,134 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
     drop(slave);
     Ok(())
 }
+
+/// A fresh pseudo-terminal for the emulated `name`: its path is printed (`NAME on PATH`) and
+/// written to `path_file`; the master side and the slave (kept open until the data ends).
+fn terminal(
+    name: &str,
+    path_file: Option<&std::path::Path>,
+    out: &mut dyn Write,
+) -> Result<(serialport::TTYPort, serialport::TTYPort)> {
+    let (master, slave) = serialport::TTYPort::pair()
+        .with_context(|| format!("opening a pseudo-terminal for the emulated {name}"))?;
+    let path = serialport::SerialPort::name(&slave).context("the pseudo-terminal has no path")?;
+    writeln!(out, "{name} on {path}")?;
+    out.flush()?;
+    if let Some(file) = path_file {
+        std::fs::write(file, &path).with_context(|| format!("writing {}", file.display()))?;
+    }
+    Ok((master, slave))
+}
+
+/// An emulated iRobot Create 2: after the Open Interface is started and the encoder packets
+/// are asked for, each simulated odometry pose is sent as one stream frame of the wheel
+/// encoder counts that roll the robot there (the Create's geometry; counts wrap at 65,535).
+struct Create2 {
+    master: serialport::TTYPort,
+    _slave: serialport::TTYPort,
+    commands: Vec<u8>,
+    started: bool,
+    streaming: bool,
+    last: Option<Se2>,
+    /// Both wheels' counts, unrounded.
+    counts: [f64; 2],
+    frames: u64,
+    corrupt_every: u64,
+}
+
+impl Create2 {
+    fn open(
+        path_file: Option<&std::path::Path>,
+        corrupt_every: u64,
+        out: &mut dyn Write,
+    ) -> Result<Self> {
+        let (master, slave) = terminal("create2", path_file, out)?;
+        Ok(Create2 {
+            master,
+            _slave: slave,
+            commands: Vec::new(),
+            started: false,
+            streaming: false,
+            last: None,
+            // Near the wrap, so that a run crosses it.
+            counts: [65_000.0; 2],
+            frames: 0,
+            corrupt_every,
+        })
+    }
+
+    /// Reads the requests sent so far: start, stream (of any packets: the encoders are sent),
+    /// pause / resume, stop.
+    fn read_commands(&mut self) {
+        use serialport::SerialPort;
+        let waiting = self.master.bytes_to_read().unwrap_or(0) as usize;
+        if waiting > 0 {
+            let mut buf = vec![0u8; waiting.min(256)];
+            let n = std::io::Read::read(&mut self.master, &mut buf).unwrap_or(0);
+            self.commands.extend_from_slice(&buf[..n]);
+        }
+        loop {
+            let used = match self.commands.as_slice() {
+                [create2::START, ..] => {
+                    self.started = true;
+                    1
+                }
+                [create2::STREAM, n, rest @ ..] if rest.len() >= usize::from(*n) => {
+                    self.streaming = self.started;
+                    2 + usize::from(*n)
+                }
+                [create2::STREAM, ..] | [create2::PAUSE_RESUME] => break,
+                [create2::PAUSE_RESUME, on, ..] => {
+                    self.streaming = self.started && *on == 1;
+                    2
+                }
+                [STOP_OI, ..] => {
+                    (self.started, self.streaming) = (false, false);
+                    1
+                }
+                [_, ..] => 1,
+                [] => break,
+            };
+            self.commands.drain(..used);
+        }
+    }
+
+    /// The robot is at `pose` in its odometry frame: the wheels roll there and, when
+    /// streaming, the counts are sent.
+    fn odometry(&mut self, pose: Se2) -> Result<()> {
+        self.read_commands();
+        let step = self
+            .last
+            .replace(pose)
+            .map_or(Se2::IDENTITY, |l| l.between(&pose));
+        let twist = step.log();
+        let g = WheelGeometry::CREATE2;
+        let half_turn = 0.5 * twist[2] * g.track;
+        self.counts[0] += (twist[0] - half_turn) / g.metres_per_count;
+        self.counts[1] += (twist[0] + half_turn) / g.metres_per_count;
+        if !self.streaming {
+            return Ok(());
+        }
+        // Counts modulo 2^16, as the robot's 16-bit counters hold them.
+        let wrap = |c: f64| (c.round() as i64).rem_euclid(65_536) as u16;
+        let mut frame = EncoderCounts {
+            left: wrap(self.counts[0]),
+            right: wrap(self.counts[1]),
+        }
+        .encode();
+        self.frames += 1;
+        if self.corrupt_every > 0 && self.frames.is_multiple_of(self.corrupt_every) {
+            frame[4] ^= 0x10;
+        }
+        match self.master.write_all(&frame) {
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Ok(()),
+            r => r.context("writing to the base's terminal"),
+        }
+    }
+}
+
+/// Open Interface opcode: stop the interface (back to the robot's own control).
+const STOP_OI: u8 = 173;
 
 /// Requests an emulated RPLIDAR has received, framed as `0xA5` and a command byte.
 #[derive(Debug, Default)]

@@ -5,9 +5,17 @@
 //! It ends after `--duration` seconds or at SIGINT / SIGTERM (Ctrl-C), and writes what
 //! `cloi map` writes, with the device's counters under `device` in `report.json`.
 //!
-//! [`emulate`] is a simulated LD06 on a pseudo-terminal, to try it without the device.
+//! A robot base ([`serial_base`]: an iRobot Create 2) adds wheel odometry from a second thread
+//! into the same channel; [`record`] writes what both send into one bag (`--record`), and
+//! [`port`] is what the device threads share: reading, and reopening a device that went away.
+//!
+//! [`emulate`] is a simulated LD06 or RPLIDAR (and Create 2) on pseudo-terminals, to try it
+//! without the devices.
 
 pub mod emulate;
+pub mod port;
+pub mod record;
+pub mod serial_base;
 pub mod serial_lidar;
 
 use std::io::Write;
@@ -26,6 +34,8 @@ use crate::map::command::{execute_input, MapArgs};
 use crate::map::config::Profile;
 use crate::map::input::{thread_input, InputArgs, InputSize};
 use crate::map::run::StampPolicy;
+use record::{Recorder, SharedRecorder};
+use serial_base::{BaseCounters, SerialBase};
 use serial_lidar::{DeviceCounters, SerialLidar};
 
 /// Events waiting between the device thread and the mapper (a few seconds of scans).
@@ -62,13 +72,34 @@ impl LidarKind {
     }
 }
 
+/// A device given as `KIND:PATH[@BAUD]`: its kind, path and speed, if given.
+fn split_spec(s: &str) -> Result<(&str, &str, Option<u32>), String> {
+    let (kind, rest) = s
+        .split_once(':')
+        .ok_or_else(|| format!("`{s}`: expected KIND:PATH[@BAUD], e.g. ld06:/dev/ttyUSB0"))?;
+    let (path, baud) = match rest.rsplit_once('@') {
+        Some((path, baud)) => (
+            path,
+            Some(
+                baud.parse::<u32>()
+                    .ok()
+                    .filter(|&b| b > 0)
+                    .ok_or_else(|| format!("`{baud}` is not a serial speed"))?,
+            ),
+        ),
+        None => (rest, None),
+    };
+    if path.is_empty() {
+        return Err(format!("`{s}`: the device path is missing"));
+    }
+    Ok((kind, path, baud))
+}
+
 impl FromStr for LidarSpec {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, String> {
-        let (kind, rest) = s
-            .split_once(':')
-            .ok_or_else(|| format!("`{s}`: expected KIND:PATH[@BAUD], e.g. ld06:/dev/ttyUSB0"))?;
+        let (kind, path, baud) = split_spec(s)?;
         let kind = match kind {
             "ld06" | "ld19" => LidarKind::Ld06,
             "rplidar" => LidarKind::Rplidar,
@@ -78,23 +109,35 @@ impl FromStr for LidarSpec {
                 ))
             }
         };
-        let (path, baud) = match rest.rsplit_once('@') {
-            Some((path, baud)) => (
-                path,
-                baud.parse::<u32>()
-                    .ok()
-                    .filter(|&b| b > 0)
-                    .ok_or_else(|| format!("`{baud}` is not a serial speed"))?,
-            ),
-            None => (rest, kind.default_baud()),
-        };
-        if path.is_empty() {
-            return Err(format!("`{s}`: the device path is missing"));
-        }
         Ok(LidarSpec {
             kind,
             path: path.to_owned(),
-            baud,
+            baud: baud.unwrap_or(kind.default_baud()),
+        })
+    }
+}
+
+/// A wheel-odometry source given as `KIND:PATH[@BAUD]`; the one kind is `create2`, an iRobot
+/// Create 2 or Roomba 600 series on its serial port (115200 baud unless given).
+#[derive(Clone, Debug, PartialEq)]
+pub struct OdomSpec {
+    /// Device path.
+    pub path: String,
+    /// Serial speed.
+    pub baud: u32,
+}
+
+impl FromStr for OdomSpec {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        let (kind, path, baud) = split_spec(s)?;
+        if kind != "create2" {
+            return Err(format!("unknown odometry source `{kind}` (known: create2)"));
+        }
+        Ok(OdomSpec {
+            path: path.to_owned(),
+            baud: baud.unwrap_or(115_200),
         })
     }
 }
@@ -109,7 +152,13 @@ pub struct RunArgs {
     /// Pose of the LiDAR on the robot, `X,Y,THETA` (m, m, rad).
     #[arg(long, value_name = "X,Y,THETA", value_parser = parse_pose, allow_hyphen_values = true)]
     pub lidar_offset: Option<Se2>,
-    /// Also record every scan to this ROS 2 bag (`cloi map FILE` replays it).
+    /// Wheel odometry, `KIND:PATH[@BAUD]`: `create2:/dev/ttyUSB1` (iRobot Create 2 or Roomba
+    /// 600 series, its encoder counts; 115200 baud unless given). Without it the LiDAR's own
+    /// motion seeds each scan.
+    #[arg(long, value_name = "KIND:PATH[@BAUD]")]
+    pub odom: Option<OdomSpec>,
+    /// Also record every scan and odometry pose to this ROS 2 bag (`cloi map FILE` replays
+    /// it).
     #[arg(long, value_name = "FILE.mcap")]
     pub record: Option<PathBuf>,
     /// Stop after this many seconds (default: at SIGINT or SIGTERM).
@@ -154,14 +203,31 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
             log::warn!("SIGINT and SIGTERM will not stop the run cleanly: {e}");
         }
     }
+    let mounting = args.lidar_offset.unwrap_or(Se2::IDENTITY);
+    let recorder: Arc<SharedRecorder> = Arc::new(Mutex::new(match &args.record {
+        Some(path) => Some(Recorder::create(path, mounting)?),
+        None => None,
+    }));
     let counters = Arc::new(Mutex::new(DeviceCounters::default()));
+    let base_counters = Arc::new(Mutex::new(BaseCounters::default()));
     let (tx, rx) = std::sync::mpsc::sync_channel(CHANNEL);
+    let base = match &args.odom {
+        Some(odom) => Some(
+            SerialBase {
+                path: odom.path.clone(),
+                baud: odom.baud,
+                recorder: Arc::clone(&recorder),
+            }
+            .start(tx.clone(), Arc::clone(&stop), Arc::clone(&base_counters))?,
+        ),
+        None => None,
+    };
     let device = SerialLidar {
         kind: args.lidar.kind,
         path: args.lidar.path.clone(),
         baud: args.lidar.baud,
-        mounting: args.lidar_offset.unwrap_or(Se2::IDENTITY),
-        record: args.record.clone(),
+        mounting,
+        recorder: Arc::clone(&recorder),
     };
     let thread = device.start(tx, Arc::clone(&stop), Arc::clone(&counters))?;
     if let Some(d) = args.duration {
@@ -179,9 +245,13 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
     }
     if !quiet {
         eprintln!(
-            "mapping from {} ({} baud){}",
+            "mapping from {} ({} baud){}{}",
             args.lidar.path,
             args.lidar.baud,
+            match &args.odom {
+                Some(o) => format!(" with odometry from {} ({} baud)", o.path, o.baud),
+                None => String::new(),
+            },
             match args.duration {
                 Some(d) => format!(" for {d} s"),
                 None => "; Ctrl-C stops and writes the map".into(),
@@ -205,13 +275,40 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
         input_args: InputArgs::default(),
         json: false,
     };
-    let mut report = execute_input(&map_args, args.profile, None, input, quiet, out)?;
+    let mapped = execute_input(&map_args, args.profile, None, input, quiet, out);
+    // However mapping ended, the devices stop and the recording is closed.
+    stop.store(true, Ordering::Release);
+    let base_ended = base.map(|b| {
+        b.join()
+            .unwrap_or_else(|_| Err(anyhow::anyhow!("the base's thread panicked")))
+    });
+    let recorded = record::finish(&recorder);
+    let mut report = mapped?;
+    recorded?;
+    if let Some(ended) = base_ended {
+        ended?;
+    }
     let device = *counters
         .lock()
         .unwrap_or_else(std::sync::PoisonError::into_inner);
     report
         .extra
         .insert("device".into(), serde_json::to_value(device)?);
+    if args.odom.is_some() {
+        let base = *base_counters
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        report
+            .extra
+            .insert("base".into(), serde_json::to_value(base)?);
+        if base.checksum_errors + base.read_errors > 0 {
+            log::warn!(
+                "the base sent {} damaged frames and went away {} times",
+                base.checksum_errors,
+                base.read_errors
+            );
+        }
+    }
     report.write(&args.out.join("report.json"))?;
     if device.crc_errors + device.read_errors > 0 {
         log::warn!(
@@ -238,6 +335,10 @@ mod tests {
         assert_eq!((s.path.as_str(), s.baud), ("/dev/pts/3", 115_200));
         let s: LidarSpec = "rplidar:/dev/ttyUSB1".parse().expect("parses");
         assert_eq!((s.kind, s.baud), (LidarKind::Rplidar, 115_200));
+        let o: OdomSpec = "create2:/dev/ttyUSB2".parse().expect("parses");
+        assert_eq!((o.path.as_str(), o.baud), ("/dev/ttyUSB2", 115_200));
+        assert!("create2:/dev/x@57600".parse::<OdomSpec>().is_ok());
+        assert!("kobuki:/dev/x".parse::<OdomSpec>().is_err());
         for bad in [
             "ld06",
             "urg:/dev/x",

@@ -17,19 +17,17 @@
 //!   off the node grid (RPLIDAR) are counted; the first revolution (the device was mid-turn
 //!   when reading began) and revolutions with fewer than [`MIN_POINTS`] returns are counted
 //!   and dropped.
-//! * **Recording** (`cloi run --record FILE.mcap`): every scan sent on is also written to a ROS 2
-//!   bag (`/scan` as `sensor_msgs/LaserScan` in frame `laser`, the mounting once on
-//!   `/tf_static`), which `cloi map FILE.mcap` replays; a write that fails stops the recording
-//!   with a warning, not the run.
+//! * **Recording** (`cloi run --record FILE.mcap`): every scan sent on is also written to the
+//!   run's recording (module [`super::record`]).
 //! * **A device that goes away** (unplugged, its port closed): the read error is counted and
-//!   the port is opened (and an RPLIDAR started) again every [`REOPEN`] until it answers or the
-//!   run stops; the mapper meanwhile waits for scans, and resumes with the next one.
+//!   the port is opened (and an RPLIDAR started) again every [`port::REOPEN`] until it answers
+//!   or the run stops; the mapper meanwhile waits for scans, and resumes with the next one.
 
-use std::io::{Read, Write};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::io::Write;
+use std::sync::atomic::AtomicBool;
 use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
 use cloi_core::sensor::ld06::{Ld06Counters, PacketReader, Revolution};
@@ -37,8 +35,8 @@ use cloi_core::sensor::rplidar::{self, NodeReader};
 use cloi_core::Se2;
 use serde::Serialize;
 
-use crate::io::bag::BagWriter;
-use crate::io::ros2::{Header, LaserScan, TfMessage, Time, Transform, TransformStamped};
+use super::port::{self, Port, PortEvent};
+use super::record::{self, SharedRecorder};
 use crate::map::input::{ScanEvent, SensorEvent};
 
 /// Beams of a scan: one per degree (the LD06 measures about 450 points a turn, an RPLIDAR A1
@@ -54,10 +52,6 @@ pub const RANGE_MAX: f32 = 12.0;
 pub const RPLIDAR_RANGE: [f32; 2] = [0.15, 12.0];
 /// How long an RPLIDAR may take to answer a scan request with its descriptor.
 const DESCRIPTOR_WAIT: Duration = Duration::from_secs(2);
-/// Wait between attempts to open a port that went away.
-pub const REOPEN: Duration = Duration::from_millis(250);
-/// Longest wait of one read, so that a stop request is seen promptly.
-const READ_TIMEOUT: Duration = Duration::from_millis(100);
 
 /// What the device thread met, for the run's report.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
@@ -106,7 +100,7 @@ struct DecoderCounters {
 }
 
 /// Where and how to read the device.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub struct SerialLidar {
     /// Its protocol.
     pub kind: super::LidarKind,
@@ -116,16 +110,14 @@ pub struct SerialLidar {
     pub baud: u32,
     /// Pose of the LiDAR on the robot.
     pub mounting: Se2,
-    /// Write every scan to this bag as well.
-    pub record: Option<std::path::PathBuf>,
+    /// The run's recording (see [`super::record`]).
+    pub recorder: Arc<SharedRecorder>,
 }
 
 impl SerialLidar {
     /// Opens the port and, for an RPLIDAR, starts its scan.
-    fn open(&self) -> Result<Box<dyn serialport::SerialPort>> {
-        let mut port = serialport::new(&self.path, self.baud)
-            .timeout(READ_TIMEOUT)
-            .open()?;
+    fn open(&self) -> Result<Port> {
+        let mut port = port::open(&self.path, self.baud)?;
         if self.kind == super::LidarKind::Rplidar {
             start_rplidar(port.as_mut())?;
         }
@@ -146,100 +138,73 @@ impl SerialLidar {
         let port = self
             .open()
             .with_context(|| format!("opening the LiDAR's serial port {}", self.path))?;
-        let recorder = match &self.record {
-            Some(path) => Some(Recorder::create(path, self.mounting)?),
-            None => None,
-        };
         std::thread::Builder::new()
             .name("cloi-lidar".into())
             .spawn(move || {
-                let mut recorder = recorder;
-                let mut port = self.read_until_stopped(port, &tx, &stop, &counters, &mut recorder);
+                let mut port = self.read_until_stopped(port, &tx, &stop, &counters);
                 if let (Some(p), super::LidarKind::Rplidar) = (port.as_mut(), self.kind) {
                     // Leave the motor stopped (best effort: the device may be gone).
                     let _ = p.write_all(&rplidar::request(rplidar::STOP));
                 }
-                match recorder {
-                    Some(r) => r.finish(),
-                    None => Ok(()),
-                }
+                Ok(())
             })
             .context("starting the LiDAR thread")
     }
 
     fn read_until_stopped(
         &self,
-        port: Box<dyn serialport::SerialPort>,
+        port: Port,
         tx: &SyncSender<Result<SensorEvent>>,
         stop: &AtomicBool,
         counters: &Mutex<DeviceCounters>,
-        recorder: &mut Option<Recorder>,
-    ) -> Option<Box<dyn serialport::SerialPort>> {
+    ) -> Option<Port> {
         let count = |f: &mut dyn FnMut(&mut DeviceCounters)| {
             f(&mut counters
                 .lock()
                 .unwrap_or_else(std::sync::PoisonError::into_inner));
         };
-        let mut port = Some(port);
         let mut assembler = Assembler::new(self.kind, self.mounting);
-        let mut buf = [0u8; 512];
-        let mut last_attempt = Instant::now();
-        while !stop.load(Ordering::Acquire) {
-            let Some(p) = port.as_mut() else {
-                std::thread::sleep(REOPEN.saturating_sub(last_attempt.elapsed()));
-                last_attempt = Instant::now();
-                if let Ok(p) = self.open() {
-                    log::warn!("{}: the LiDAR answers again", self.path);
+        let handle = |event: PortEvent<'_>| {
+            let bytes = match event {
+                PortEvent::Bytes(bytes) => bytes,
+                PortEvent::Lost => {
+                    count(&mut |c| c.read_errors += 1);
+                    return true;
+                }
+                PortEvent::Reopened => {
                     count(&mut |c| c.reopened += 1);
                     assembler = Assembler::new(self.kind, self.mounting);
-                    port = Some(p);
+                    return true;
                 }
-                continue;
             };
-            match p.read(&mut buf) {
-                Ok(n) => {
-                    let before = assembler.counters();
-                    let mut scans = Vec::new();
-                    let mut dropped = 0;
-                    for &b in &buf[..n] {
-                        match assembler.push(b) {
-                            Some(Ok(scan)) => scans.push(scan),
-                            Some(Err(())) => dropped += 1,
-                            None => {}
-                        }
-                    }
-                    let after = assembler.counters();
-                    count(&mut |c| {
-                        c.bytes += n as u64;
-                        c.add(before, after);
-                        c.revolutions_dropped += dropped;
-                        c.scans += scans.len() as u64;
-                    });
-                    for scan in scans {
-                        if let Some(r) = recorder.as_mut() {
-                            match r.scan(&scan) {
-                                Ok(()) => count(&mut |c| c.recorded += 1),
-                                Err(e) => {
-                                    log::warn!("recording stopped: {e:#}");
-                                    *recorder = None;
-                                }
-                            }
-                        }
-                        if tx.send(Ok(SensorEvent::Scan(scan))).is_err() {
-                            return port;
-                        }
-                    }
-                }
-                Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
-                Err(e) => {
-                    log::warn!("{}: {e}; opening it again until it answers", self.path);
-                    count(&mut |c| c.read_errors += 1);
-                    port = None;
-                    last_attempt = Instant::now();
+            let before = assembler.counters();
+            let mut scans = Vec::new();
+            let mut dropped = 0;
+            for &b in bytes {
+                match assembler.push(b) {
+                    Some(Ok(scan)) => scans.push(scan),
+                    Some(Err(())) => dropped += 1,
+                    None => {}
                 }
             }
-        }
-        port
+            let after = assembler.counters();
+            count(&mut |c| {
+                c.bytes += bytes.len() as u64;
+                c.add(before, after);
+                c.revolutions_dropped += dropped;
+                c.scans += scans.len() as u64;
+            });
+            for scan in scans {
+                if record::record(&self.recorder, |r| r.scan(&scan)) {
+                    count(&mut |c| c.recorded += 1);
+                }
+                if tx.send(Ok(SensorEvent::Scan(scan))).is_err() {
+                    return false;
+                }
+            }
+            true
+        };
+        port::read_until_stopped(&self.path, "LiDAR", port, stop, &|| self.open(), handle)
     }
 }
 
@@ -274,61 +239,6 @@ fn start_rplidar(port: &mut dyn serialport::SerialPort) -> Result<()> {
         anyhow::bail!("the RPLIDAR answered a scan request with {got:02X?}");
     }
     Ok(())
-}
-
-/// The bag a live run is recorded into.
-struct Recorder {
-    bag: BagWriter,
-    mounting: Se2,
-    tf_written: bool,
-    previous: Option<i64>,
-}
-
-impl Recorder {
-    fn create(path: &std::path::Path, mounting: Se2) -> Result<Self> {
-        Ok(Recorder {
-            bag: BagWriter::create(path)
-                .with_context(|| format!("creating the recording {}", path.display()))?,
-            mounting,
-            tf_written: false,
-            previous: None,
-        })
-    }
-
-    fn scan(&mut self, scan: &ScanEvent) -> Result<()> {
-        if !std::mem::replace(&mut self.tf_written, true) {
-            let m = self.mounting;
-            let tf = TfMessage {
-                transforms: vec![TransformStamped {
-                    header: Header::new(Time::from_nanos(scan.t_ns), "base_link"),
-                    child_frame_id: "laser".into(),
-                    transform: Transform::planar(m.x, m.y, m.theta),
-                }],
-            };
-            self.bag.write("/tf_static", scan.t_ns, &tf)?;
-        }
-        let scan_time = self
-            .previous
-            .replace(scan.t_ns)
-            .map_or(0.0, |p| (scan.t_ns - p) as f32 * 1e-9);
-        let msg = LaserScan {
-            header: Header::new(Time::from_nanos(scan.t_ns), "laser"),
-            angle_min: scan.angle_min,
-            angle_max: scan.angle_min + scan.angle_increment * (scan.ranges.len() - 1) as f32,
-            angle_increment: scan.angle_increment,
-            time_increment: scan.time_increment,
-            scan_time,
-            range_min: scan.range_min,
-            range_max: scan.range_max,
-            ranges: scan.ranges.clone(),
-            intensities: Vec::new(),
-        };
-        self.bag.write("/scan", scan.t_ns, &msg)
-    }
-
-    fn finish(self) -> Result<()> {
-        self.bag.finish().map(|_| ())
-    }
 }
 
 /// A device's protocol decoder.
@@ -404,9 +314,7 @@ impl Assembler {
                 (points, 0)
             }
         };
-        let now = SystemTime::now()
-            .duration_since(UNIX_EPOCH)
-            .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX));
+        let now = port::now_ns();
         let previous_turn = self.last_turn.replace(now);
         if std::mem::take(&mut self.partial) || points < MIN_POINTS {
             return Some(Err(()));
