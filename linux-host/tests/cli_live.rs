@@ -198,6 +198,13 @@ fn an_emulated_create2_gives_the_live_map_its_wheel_odometry() {
     assert_eq!(r["input"]["odometry"].as_u64(), Some(n("poses")), "{r}");
     assert_eq!(r["mapper"]["odometry_rejected"].as_u64(), Some(0), "{r}");
     assert!(r["mapper"]["odometry_gaps"].as_u64() <= Some(2), "{r}");
+    // Each live scan's latency was measured (its figures are the note's, not a test's).
+    let latency = &r["live_latency_ms"];
+    let ms = |k: &str| latency[k].as_f64().expect(k);
+    assert!(
+        ms("median") <= ms("p99") && ms("p99") <= ms("max"),
+        "{latency}"
+    );
 
     // The recording holds both streams; the wheels' motion over the run is the LiDAR's: the
     // encoder geometry, the turning direction and both devices' time stamps agree (within the

@@ -337,6 +337,7 @@ impl Assembler {
             time_increment: 0.0,
             laser_offset: self.mounting,
             odom: None,
+            received: Some(Instant::now()),
         }))
     }
 }

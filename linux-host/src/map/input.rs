@@ -142,6 +142,9 @@ pub struct ScanEvent {
     /// Odometry pose attached to the scan line if the source has one (CARMEN `FLASER`,
     /// `RLASER`, `ROBOTLASER1`).
     pub odom: Option<Se2>,
+    /// When a live device's last byte of the scan arrived (host's monotonic clock), for the
+    /// run's latency; `None` from files and the simulator.
+    pub received: Option<std::time::Instant>,
 }
 
 /// Which laser of a CARMEN log is used.
@@ -681,6 +684,7 @@ impl EventSource for CarmenSource {
                         time_increment: 0.0,
                         laser_offset,
                         odom,
+                        received: None,
                     }));
                 }
             }
@@ -830,6 +834,7 @@ impl<R: Read> CloilogSource<R> {
                         time_increment: 0.0,
                         laser_offset,
                         odom: m.odom,
+                        received: None,
                     })
                 }
                 LogRecord::Unknown { .. } => {
@@ -1084,6 +1089,7 @@ impl EventSource for BagSource {
                         time_increment: scan.time_increment,
                         ranges: scan.ranges,
                         odom: None,
+                        received: None,
                     })));
                 }
                 SensorMsg::Odom(odom)
@@ -1175,6 +1181,7 @@ impl SampleSink for ChannelSink {
                 time_increment: scan.time_increment,
                 laser_offset: self.laser_offset,
                 odom: None,
+                received: None,
             }),
             Payload::Image(cam, f) => SensorEvent::Image(ImageEvent {
                 t_ns,

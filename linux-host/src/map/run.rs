@@ -13,6 +13,7 @@
 //! front-end motion since that keyframe, so `trajectory.tum` has one pose per accepted scan with
 //! the scan's own time stamp.
 
+use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
@@ -118,6 +119,10 @@ struct Driver<'s> {
     gpe_max_jump: f64,
     /// Wall time of the real-time part per scan (front-end, GPE, keyframe, loop search), µs.
     scan_us: Latency,
+    /// Live scans not yet through the mapper: stamp and when the device's last byte arrived.
+    arrivals: VecDeque<(i64, Instant)>,
+    /// From a live scan's last byte to its pose, µs.
+    live_us: Latency,
     first_stamp: Option<i64>,
     last_stamp: i64,
     rejected: u64,
@@ -168,6 +173,9 @@ impl Driver<'_> {
                     },
                     mounting: s.laser_offset,
                 };
+                if let Some(r) = s.received {
+                    self.arrivals.push_back((s.t_ns, r));
+                }
                 let t0 = Instant::now();
                 pushed = self
                     .feeder
@@ -195,12 +203,27 @@ impl Driver<'_> {
                 }
             };
             self.scan_us.add(t0.elapsed().as_secs_f64() * 1e6);
+            self.arrived(p.stamp);
             match p.result {
                 Ok(out) => self.accept(mapper, &out, p.stamp),
                 Err(_) => self.rejected += 1,
             }
             self.late = started.elapsed() > self.deadline;
             after_scan(mapper, p.stamp);
+        }
+    }
+
+    /// A live scan stamped `stamp` has its pose: its latency since its last byte arrived
+    /// (scans dropped on the way are forgotten).
+    fn arrived(&mut self, stamp: i64) {
+        while let Some(&(t, received)) = self.arrivals.front() {
+            if t > stamp {
+                break;
+            }
+            self.arrivals.pop_front();
+            if t == stamp {
+                self.live_us.add(received.elapsed().as_secs_f64() * 1e6);
+            }
         }
     }
 
@@ -290,6 +313,7 @@ struct Finished {
     stamps_repaired: u64,
     sync: SyncStats,
     scan_us: Latency,
+    live_us: Latency,
     records: ScanSpool,
     gpe_max_jump: f64,
     /// Largest heap in use while mapping (before the outputs were composed), when measured.
@@ -330,6 +354,8 @@ fn drive(
         previous: None,
         gpe_max_jump: 0.0,
         scan_us: Latency::new(),
+        arrivals: VecDeque::new(),
+        live_us: Latency::new(),
         first_stamp: None,
         last_stamp: 0,
         rejected: 0,
@@ -539,6 +565,7 @@ fn drive(
         gpe_max_jump: driver.gpe_max_jump,
         mapping_peak_heap_bytes,
         scan_us: driver.scan_us,
+        live_us: driver.live_us,
         stamps_repaired: driver.feeder.stamps_repaired,
         sync: driver.feeder.sync_stats(),
         rejected: driver.rejected,
@@ -760,6 +787,21 @@ fn finish(
                      median and p99 to 1 %",
         }),
     );
+    let live = &f.live_us;
+    if let Some(max) = live.max() {
+        let ms = |us: Option<f64>| us.map(|u| u * 1e-3);
+        report.extra.insert(
+            "live_latency_ms".into(),
+            json!({
+                "median": ms(live.quantile(0.5)),
+                "p99": ms(live.quantile(0.99)),
+                "max": max * 1e-3,
+                "note": "host wall time from the arrival of a live scan's last byte to its pose \
+                         (the channel, waiting for odometry, the real-time part); median and \
+                         p99 to 1 %",
+            }),
+        );
+    }
     report.write(&out.join("report.json"))?;
     set.commit("report.json")?;
     Ok(MapRun {
