@@ -42,7 +42,8 @@ pub struct MapperRun {
     pub scans: u64,
     /// Scans the mapper rejected.
     pub rejected: u64,
-    /// The `key=value` counters of the `mapper_records=` line.
+    /// The `key=value` counters of the `mapper_records=` line (and, localizing, of the
+    /// `localized_scans=` line).
     pub counters: BTreeMap<String, u64>,
     /// Instruction percentiles per section (`push_scan`, `frontend_gpe`, `keyframe_scan`, the
     /// parts `frontend`, `gpe`, `keyframe_update`, `loop_search`,
@@ -120,7 +121,45 @@ pub fn run_mapper_saving(
     save: Option<&Path>,
     seconds: u32,
 ) -> Result<MapperRun> {
-    for p in [log, out].into_iter().chain(save) {
+    if let Some(save) = save {
+        let _ = std::fs::remove_file(save);
+    }
+    let extra = save.map(|s| format!("save={}", s.display()));
+    run_firmware_over(elf, log, out, save, extra.as_deref(), seconds)
+}
+
+/// Runs the `cloi-mapper` firmware localizing in the saved map `map` over `log`
+/// (`localize=MAP [initial=X,Y,THETA]`, as `cloi localize`), the poses written to `out`; the
+/// run's counters include the `localized_scans=` line's.
+///
+/// # Errors
+/// As [`run_mapper`].
+pub fn run_localizer(
+    elf: &Path,
+    log: &Path,
+    out: &Path,
+    map: &Path,
+    initial: Option<[f64; 3]>,
+    seconds: u32,
+) -> Result<MapperRun> {
+    let mut extra = format!("localize={}", map.display());
+    if let Some([x, y, theta]) = initial {
+        extra.push_str(&format!(" initial={x:e},{y:e},{theta:e}"));
+    }
+    run_firmware_over(elf, log, out, Some(map), Some(&extra), seconds)
+}
+
+/// Runs the firmware over `log` with `log= out=` and the `extra` arguments, checking that
+/// `log`, `out` and `other` have no spaces; parses what it printed and its pose file.
+fn run_firmware_over(
+    elf: &Path,
+    log: &Path,
+    out: &Path,
+    other: Option<&Path>,
+    extra: Option<&str>,
+    seconds: u32,
+) -> Result<MapperRun> {
+    for p in [log, out].into_iter().chain(other) {
         let s = p.to_string_lossy();
         ensure!(
             !s.contains(' '),
@@ -129,9 +168,9 @@ pub fn run_mapper_saving(
     }
     let _ = std::fs::remove_file(out);
     let mut args = format!("log={} out={}", log.display(), out.display());
-    if let Some(save) = save {
-        let _ = std::fs::remove_file(save);
-        args.push_str(&format!(" save={}", save.display()));
+    if let Some(extra) = extra {
+        args.push(' ');
+        args.push_str(extra);
     }
     let text = run_firmware_timeout(elf, &args, seconds)?;
     let mut run = MapperRun {
@@ -154,14 +193,16 @@ pub fn run_mapper_saving(
     for line in text.lines() {
         if let Some(c) = line.strip_prefix("config=") {
             c.clone_into(&mut run.config);
-        } else if line.starts_with("mapper_records=") {
+        } else if line.starts_with("mapper_records=") || line.starts_with("localized_scans=") {
             for kv in line.split_whitespace() {
                 if let Some((k, v)) = kv.split_once('=') {
                     run.counters.insert(k.to_owned(), v.parse()?);
                 }
             }
-            run.scans = number(line, "mapper_scans")?;
-            run.rejected = number(line, "mapper_rejected")?;
+            if line.starts_with("mapper_records=") {
+                run.scans = number(line, "mapper_scans")?;
+                run.rejected = number(line, "mapper_rejected")?;
+            }
         } else if let Some(name) = field(line, "stat") {
             run.sections.insert(
                 name.to_owned(),

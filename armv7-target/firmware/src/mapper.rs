@@ -37,6 +37,7 @@ use cloi_core::mapper::{
     BackendStep, Feeder, Mapper, MapperConfig, Probe, Pushed, ScanInput, ScanSlots, Section,
 };
 use cloi_core::profile::HomeResources;
+use cloi_core::Se2;
 use cloi_core::sensor::log::{
     LogError, LogReader, LogRecord, ReadError, MAX_BEAMS, MIN_READER_BUFFER,
 };
@@ -320,8 +321,24 @@ fn print_stat(
     );
 }
 
-/// Runs the mapper over `log_path`, writing poses to `out_path`. Returns an error message.
-pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<(), &'static str> {
+/// A saved map to localize in instead of mapping (`cloi localize`), and the robot's pose in it
+/// at the first scan (`None`: global localization).
+#[derive(Clone, Copy, Debug)]
+pub struct LocalizeIn<'a> {
+    /// Path of the `.cloimap`.
+    pub map: &'a str,
+    /// The robot's pose in the map at the first scan, if known.
+    pub initial: Option<Se2>,
+}
+
+/// Runs the mapper over `log_path` (or, with `localize`, localizes in a saved map), writing
+/// poses to `out_path`. Returns an error message.
+pub fn run(
+    log_path: &str,
+    out_path: &str,
+    save_path: Option<&str>,
+    localize: Option<LocalizeIn<'_>>,
+) -> Result<(), &'static str> {
     let (Some(resources), Some(ranges), Some(read_buffer), Some(out)) = (
         RESOURCES.take(),
         RANGES.take(),
@@ -350,24 +367,32 @@ pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<()
     // which the static stack bound would have to refuse as recursion.
     println!("config=MapperConfig::home");
     println!("backend_iterations_per_scan={BACKEND_ITERATIONS_PER_SCAN}");
-    let (mapper, setup) = measure(move || resources.mapper(config));
-    let Ok(mapper) = mapper else {
-        return Err("the home configuration does not fit the home resources");
+    let mut path = [0u8; 512];
+    let mapper = match localize {
+        None => {
+            let (mapper, setup) = measure(move || resources.mapper(config));
+            println!("setup_instructions={setup}");
+            mapper.map_err(|_| "the home configuration does not fit the home resources")?
+        }
+        Some(l) => localizer(resources, config, l, &mut path)?,
     };
-    println!("setup_instructions={setup}");
     let mut state = State {
         mapper,
         ranges,
         feeder: Feeder::new(true, config.min_range, held),
     };
 
-    let mut path = [0u8; 512];
     let log_c = c_path(log_path, &mut path).ok_or("log path too long")?;
     let file = File::open(log_c).map_err(|_| "cannot open the log (SYS_OPEN)")?;
     let log_bytes = file.metadata().map(|m| m.len()).unwrap_or(0);
     let out_c = c_path(out_path, &mut path).ok_or("output path too long")?;
     let mut out_file = File::create(out_c).map_err(|_| "cannot create the output (SYS_OPEN)")?;
-    println!("mode=mapper profile=home log={log_path} log_bytes={log_bytes} chunk_bytes={CHUNK}");
+    let mode = if localize.is_some() {
+        "localize"
+    } else {
+        "mapper"
+    };
+    println!("mode={mode} profile=home log={log_path} log_bytes={log_bytes} chunk_bytes={CHUNK}");
     let _ = writeln!(
         out,
         "# scan t_ns x y theta keyframe push_scan_instructions backend_instructions"
@@ -375,7 +400,7 @@ pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<()
 
     let mut reader =
         LogReader::new(ChunkedFile(file), read_buffer).map_err(|_| "read buffer too small")?;
-    let (mut scans, mut records, mut rejected) = (0usize, 0u64, 0u64);
+    let (mut scans, mut records, mut rejected, mut localized) = (0usize, 0u64, 0u64, 0u64);
     let (mut sensors_total, mut decode_total) = (0u64, 0u64);
     loop {
         let (next, n) = measure(|| reader.next_record());
@@ -433,6 +458,7 @@ pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<()
                 rejected += 1;
                 continue;
             };
+            localized += u64::from(o.localized);
             if out.len + 256 > out.bytes.len() {
                 out.flush_to(&mut out_file)
                     .map_err(|_| "cannot write the output (SYS_WRITE)")?;
@@ -574,7 +600,39 @@ pub fn run(log_path: &str, out_path: &str, save_path: Option<&str>) -> Result<()
     if scans > MAX_SCANS {
         println!("scans_not_in_percentiles={}", scans - MAX_SCANS);
     }
+    if let Some(c) = mapper.localize_counters() {
+        println!(
+            "localized_scans={localized} localize_keyframes={} localize_matches={} \
+             localize_misses={} localize_fixes={} localize_lost={}",
+            c.keyframes, c.matches, c.misses, c.fixes, c.lost
+        );
+    }
     Ok(())
+}
+
+/// A mapper localizing in the saved map `l.map`, read into `resources`' pools (no heap);
+/// prints the instructions the read and the start took.
+fn localizer(
+    resources: &'static mut HomeResources,
+    config: MapperConfig,
+    l: LocalizeIn<'_>,
+    path: &mut [u8; 512],
+) -> Result<Mapper<'static>, &'static str> {
+    let c = c_path(l.map, path).ok_or("map path too long")?;
+    let file = File::open(c).map_err(|_| "cannot open the map file (SYS_OPEN)")?;
+    let mut input = MapFile::new(file);
+    let mut parts = resources.parts();
+    let (read, instructions) = measure(|| {
+        MapReader::open(&mut input).and_then(|r| r.read_into_parts(config.grid, &mut parts))
+    });
+    if let Err(e) = read {
+        println!("map_error=\"{e}\"");
+        return Err("the map file was refused");
+    }
+    println!("map_load_instructions={instructions}");
+    parts
+        .localize(config, l.initial)
+        .map_err(|_| "the saved map does not fit the home configuration")
 }
 
 /// The variant of a log error, printed without its fields: `LogError`'s `Display` nests

@@ -7,7 +7,9 @@
 //! instruction percentiles per section and the stack high-water mark, and exits through semihosting (status 0 on success). Paths are opened by
 //! QEMU on the host (relative to its working folder) and must not contain spaces.
 //! `load=MAP` instead reads a saved map into the profile's static pools and prints what it
-//! holds (`cloi_firmware::mapper::load`).
+//! holds (`cloi_firmware::mapper::load`); `localize=MAP [initial=X,Y,THETA]` with `log` and
+//! `out` localizes in a saved map instead of mapping (`cloi localize`; without `initial`, by
+//! global localization).
 #![no_std]
 #![no_main]
 
@@ -27,6 +29,7 @@ fn main() -> ! {
         process::exit(2);
     };
     let (mut log, mut out, mut save, mut load) = (None, None, None, None);
+    let (mut localize, mut initial) = (None, None);
     // The first word is the kernel's file name.
     for arg in (&args).skip(1).flatten() {
         if let Some(v) = arg.strip_prefix("log=") {
@@ -37,18 +40,29 @@ fn main() -> ! {
             save = Some(v);
         } else if let Some(v) = arg.strip_prefix("load=") {
             load = Some(v);
+        } else if let Some(v) = arg.strip_prefix("localize=") {
+            localize = Some(v);
+        } else if let Some(v) = arg.strip_prefix("initial=") {
+            let Some(pose) = parse_pose(v) else {
+                println!("status=error message=\"initial= wants X,Y,THETA\"");
+                process::exit(2);
+            };
+            initial = Some(pose);
         } else {
             println!("status=error message=\"unknown argument {arg}\"");
             process::exit(2);
         }
     }
+    let localize = localize.map(|map| mapper::LocalizeIn { map, initial });
     let result = match (log, out, load) {
-        (Some(log), Some(out), None) => mapper::run(log, out, save),
-        (None, None, Some(map)) if save.is_none() => mapper::load(map),
+        (Some(log), Some(out), None) if localize.is_none() || save.is_none() => {
+            mapper::run(log, out, save, localize)
+        }
+        (None, None, Some(map)) if save.is_none() && localize.is_none() => mapper::load(map),
         _ => {
             println!(
-                "status=error message=\"usage: -append 'log=PATH out=PATH [save=MAP]' or \
-                 -append 'load=MAP'\""
+                "status=error message=\"usage: -append 'log=PATH out=PATH [save=MAP]', \
+                 'log=PATH out=PATH localize=MAP [initial=X,Y,THETA]' or 'load=MAP'\""
             );
             process::exit(2);
         }
@@ -60,6 +74,13 @@ fn main() -> ! {
     report_stack();
     println!("status=ok");
     process::exit(0)
+}
+
+/// `X,Y,THETA` as a pose.
+fn parse_pose(s: &str) -> Option<cloi_core::Se2> {
+    let mut v = s.split(',').map(|f| f.parse::<f64>().ok());
+    let pose = cloi_core::Se2::new(v.next()??, v.next()??, v.next()??);
+    (v.next().is_none() && pose.is_finite()).then_some(pose)
 }
 
 #[panic_handler]

@@ -128,7 +128,21 @@ pub(crate) struct LocalizeState {
     /// uncertainty since.
     prior: Option<NodeTie>,
     search: FarSearch,
+    /// What the reference storage holds, arranged as a k-d tree: the world points of these
+    /// submaps.
+    reference: Option<MapReference>,
     counters: LocalizeCounters,
+}
+
+/// The map points a match was made with, kept for the next: a keyframe near the last one sees
+/// the same submaps, and gathering their points (with normals) and arranging them cost more
+/// than the match itself.
+#[derive(Clone, Debug)]
+struct MapReference {
+    /// Submap slots, ascending.
+    slots: heapless::Vec<usize, MAP_SUBMAPS>,
+    /// Points held.
+    len: usize,
 }
 
 impl LocalizeState {
@@ -143,6 +157,7 @@ impl LocalizeState {
             sweep: None,
             prior: None,
             search: FarSearch::new(),
+            reference: None,
             counters: LocalizeCounters {
                 keyframes: 0,
                 matches: 0,
@@ -392,19 +407,20 @@ impl Mapper<'_> {
                 let _ = near.insert(at, (d, slot, anchor));
             }
         }
-        let per = self.cells_per_submap;
-        let mut n = 0;
-        for &(_, slot, anchor) in &near {
-            let (Some(cells), Some(out)) = (
-                self.cells.get(slot * per..(slot + 1) * per),
-                self.reference.get_mut(n..),
-            ) else {
-                break;
-            };
-            if let Ok(grid) = Submap::from_cells(anchor, self.cfg.grid, cells) {
-                n += grid.occupied_points(OCCUPIED, NORMAL_RADIUS, out);
-            }
+        let mut slots = heapless::Vec::<usize, MAP_SUBMAPS>::new();
+        for c in &near {
+            // As many as `near` holds.
+            let _ = slots.push(c.1);
         }
+        crate::sort::sort(&mut slots);
+        let held = (self.st.localize.as_ref())
+            .and_then(|l| l.reference.as_ref())
+            .filter(|r| r.slots == slots)
+            .map(|r| r.len);
+        let n = match held {
+            Some(n) => n,
+            None => self.gather_reference(&near, slots),
+        };
         let points: &[ScanPoint] = match source {
             MatchSource::Scan => self.scan.as_slice(),
             MatchSource::Far => self.st.far.scan(),
@@ -417,7 +433,7 @@ impl Mapper<'_> {
         if n < icp.min_points as usize || points.len() < icp.min_points as usize {
             return Err(Miss::Uninformative);
         }
-        let tree = KdTree::build(self.reference.get_mut(..n).ok_or(Miss::Uninformative)?);
+        let tree = KdTree::arranged(self.reference.get(..n).ok_or(Miss::Uninformative)?);
         let lc = self.cfg.loops;
         let r = match align(points, &tree, seed, &icp) {
             Ok(r) => r,
@@ -453,6 +469,38 @@ impl Mapper<'_> {
                 Err(Miss::Mismatch)
             }
         }
+    }
+
+    /// Gathers the occupied cells of the `near` submaps (nearest first) into the reference
+    /// storage as world points, as many as it holds, and arranges them as a k-d tree; how
+    /// many. Remembered for the next match unless the storage filled (the points kept then
+    /// depend on the order of `near`, not only on `slots`).
+    fn gather_reference(
+        &mut self,
+        near: &[(f64, usize, Se2)],
+        slots: heapless::Vec<usize, MAP_SUBMAPS>,
+    ) -> usize {
+        let per = self.cells_per_submap;
+        let mut n = 0;
+        for &(_, slot, anchor) in near {
+            let (Some(cells), Some(out)) = (
+                self.cells.get(slot * per..(slot + 1) * per),
+                self.reference.get_mut(n..),
+            ) else {
+                break;
+            };
+            if let Ok(grid) = Submap::from_cells(anchor, self.cfg.grid, cells) {
+                n += grid.occupied_points(OCCUPIED, NORMAL_RADIUS, out);
+            }
+        }
+        if let Some(points) = self.reference.get_mut(..n) {
+            KdTree::build(points);
+        }
+        let whole = n < self.reference.len();
+        if let Some(l) = self.st.localize.as_mut() {
+            l.reference = whole.then_some(MapReference { slots, len: n });
+        }
+        n
     }
 
     /// How well the scan of `source` at the world pose `world` fits the whole saved map: the
