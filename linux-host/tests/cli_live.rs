@@ -347,22 +347,30 @@ fn sigint_ends_a_live_run_with_every_output() {
 #[test]
 fn a_missing_device_is_a_clear_error() {
     let tmp = tempfile::tempdir().expect("tempdir");
-    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
-        .args([
-            "run",
-            "--lidar",
-            "ld06:/dev/cloi-no-such-port",
-            "--duration",
-            "1",
-        ])
-        .arg("--out")
-        .arg(tmp.path())
-        .output()
-        .expect("cloi run");
-    assert!(!o.status.success());
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        stderr.contains("opening the LiDAR's serial port /dev/cloi-no-such-port"),
-        "{stderr}"
-    );
+    // The devices are opened gyro, base, LiDAR: the first missing one is named.
+    for (device, said) in [
+        (
+            ["--lidar-offset", "0,0,0"],
+            "opening the LiDAR's serial port /dev/cloi-no-such-port",
+        ),
+        (
+            ["--odom", "create2:/dev/cloi-no-such-base"],
+            "opening the base's serial port /dev/cloi-no-such-base",
+        ),
+        (
+            ["--imu", "mpu6050:/dev/cloi-no-such-i2c"],
+            "opening the I2C device /dev/cloi-no-such-i2c",
+        ),
+    ] {
+        let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+            .args(["run", "--lidar", "ld06:/dev/cloi-no-such-port"])
+            .args(device)
+            .args(["--duration", "1", "--out"])
+            .arg(tmp.path())
+            .output()
+            .expect("cloi run");
+        assert!(!o.status.success());
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(stderr.contains(said), "{stderr}");
+    }
 }

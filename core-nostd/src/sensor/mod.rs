@@ -13,15 +13,19 @@
 //!   nodes decoded byte by byte, gathered into the same revolutions as the LD06's points.
 //! * [`create2`]: the iRobot Create 2's Open Interface as a wheel-odometry source: the
 //!   encoder stream's requests and frames, the counts integrated into a pose.
-//! * [`mpu6050`]: the MPU-6050 family's gyro on an `embedded-hal` I2C bus, and its bias
-//!   measured at standstill.
+//! * [`gyro`]: what the gyro drivers share (full scales, errors, the yaw rate as a trait) and
+//!   the bias measured at standstill; [`mpu6050`] (the InvenSense MPU-6050 family) and
+//!   [`lsm6ds`] (the STMicroelectronics LSM6DS family) read the yaw rate on an `embedded-hal`
+//!   I2C bus.
 //! * [`log`]: the compact binary sensor log (`.cloilog`) streamed to the firmware, with its
 //!   encoder and a streaming, allocation-free decoder.
 
 pub mod create2;
+pub mod gyro;
 mod image;
 pub mod ld06;
 pub mod log;
+pub mod lsm6ds;
 pub mod mpu6050;
 mod odometry;
 pub mod rplidar;

@@ -1,6 +1,5 @@
-//! The InvenSense MPU-6050 family's gyro over I2C (`embedded-hal` 1.0), the yaw rate the
-//! odometry fusion takes (paper III-B.2: wheels and a slow gyro), and the gyro's bias measured
-//! while the robot stands still.
+//! The InvenSense MPU-6050 family's gyro over I2C (`embedded-hal` 1.0): the yaw rate the
+//! odometry fusion takes (paper III-B.2: wheels and a slow gyro).
 //!
 //! # Registers (from the vendor's public register map)
 //! | register | use here |
@@ -16,15 +15,11 @@
 //! time is the caller's (it has the clock): [`Mpu6050::reset`], wait 100 ms, then
 //! [`Mpu6050::configure`].
 //!
-//! # Bias at standstill
-//! A MEMS gyro's zero-rate output drifts with temperature and differs per part; integrated for
-//! minutes, a bias of 0.5 deg/s turns the map by degrees. While the robot is known to stand
-//! (the wheels report no motion), [`StillBias`] averages the rate; the mean becomes the bias
-//! only when the samples' spread says nothing moved (a robot pushed by hand while its wheels
-//! are still is not averaged in). The scan matcher keeps refining it while driving
-//! (`frontend::gyro_bias`).
+//! The bias at standstill is module [`gyro`](super::gyro)'s.
 
 use embedded_hal::i2c::I2c;
+
+use super::gyro::{GyroError, GyroRange, YawGyro};
 
 /// The chip's I2C address with its AD0 pin low (`0x69` with AD0 high).
 pub const DEFAULT_ADDRESS: u8 = 0x68;
@@ -39,52 +34,25 @@ const GYRO_ZOUT_H: u8 = 0x47;
 /// WHO_AM_I answers of the parts whose gyro registers are the MPU-6050's.
 pub const KNOWN_PARTS: [u8; 4] = [0x68, 0x70, 0x71, 0x73];
 
-/// Full scale of the gyro.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum GyroRange {
-    /// +-250 deg/s (131 LSB per deg/s): a cleaning robot turns at most about 120 deg/s.
-    Dps250,
-    /// +-500 deg/s.
-    Dps500,
-    /// +-1000 deg/s.
-    Dps1000,
-    /// +-2000 deg/s.
-    Dps2000,
+/// Bits 4:3 of GYRO_CONFIG for `range`.
+fn range_bits(range: GyroRange) -> u8 {
+    (match range {
+        GyroRange::Dps250 => 0,
+        GyroRange::Dps500 => 1,
+        GyroRange::Dps1000 => 2,
+        GyroRange::Dps2000 => 3,
+    }) << 3
 }
 
-impl GyroRange {
-    /// Bits 4:3 of GYRO_CONFIG.
-    fn bits(self) -> u8 {
-        (match self {
-            GyroRange::Dps250 => 0,
-            GyroRange::Dps500 => 1,
-            GyroRange::Dps1000 => 2,
-            GyroRange::Dps2000 => 3,
-        }) << 3
-    }
-
-    /// Radians per second of one count.
-    pub fn rad_per_lsb(self) -> f32 {
-        let lsb_per_dps = match self {
-            GyroRange::Dps250 => 131.0,
-            GyroRange::Dps500 => 65.5,
-            GyroRange::Dps1000 => 32.8,
-            GyroRange::Dps2000 => 16.4,
-        };
-        core::f32::consts::PI / 180.0 / lsb_per_dps
-    }
-}
-
-/// What went wrong talking to the chip.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Mpu6050Error<E> {
-    /// The bus failed (no answer, arbitration lost, ...).
-    Bus(E),
-    /// Something answered at the address, but not a part of the family.
-    NotFound {
-        /// Its WHO_AM_I register.
-        who_am_i: u8,
-    },
+/// Radians per second of one count at `range`.
+fn rad_per_lsb(range: GyroRange) -> f32 {
+    let lsb_per_dps = match range {
+        GyroRange::Dps250 => 131.0,
+        GyroRange::Dps500 => 65.5,
+        GyroRange::Dps1000 => 32.8,
+        GyroRange::Dps2000 => 16.4,
+    };
+    core::f32::consts::PI / 180.0 / lsb_per_dps
 }
 
 /// An MPU-6050 (or MPU-6500 / 9250 / 9255) on an I2C bus.
@@ -99,13 +67,13 @@ impl<I2C: I2c> Mpu6050<I2C> {
     /// Checks that a part of the family answers at `address`.
     ///
     /// # Errors
-    /// A bus error, or [`Mpu6050Error::NotFound`] with what answered.
-    pub fn probe(mut i2c: I2C, address: u8) -> Result<Self, Mpu6050Error<I2C::Error>> {
+    /// A bus error, or [`GyroError::NotFound`] with what answered.
+    pub fn probe(mut i2c: I2C, address: u8) -> Result<Self, GyroError<I2C::Error>> {
         let mut who = [0u8];
         i2c.write_read(address, &[WHO_AM_I], &mut who)
-            .map_err(Mpu6050Error::Bus)?;
+            .map_err(GyroError::Bus)?;
         if !KNOWN_PARTS.contains(&who[0]) {
-            return Err(Mpu6050Error::NotFound { who_am_i: who[0] });
+            return Err(GyroError::NotFound { who_am_i: who[0] });
         }
         Ok(Mpu6050 {
             i2c,
@@ -118,7 +86,7 @@ impl<I2C: I2c> Mpu6050<I2C> {
     ///
     /// # Errors
     /// A bus error.
-    pub fn reset(&mut self) -> Result<(), Mpu6050Error<I2C::Error>> {
+    pub fn reset(&mut self) -> Result<(), GyroError<I2C::Error>> {
         self.write(PWR_MGMT_1, 0x80)
     }
 
@@ -131,12 +99,12 @@ impl<I2C: I2c> Mpu6050<I2C> {
         &mut self,
         range: GyroRange,
         rate_hz: u16,
-    ) -> Result<(), Mpu6050Error<I2C::Error>> {
+    ) -> Result<(), GyroError<I2C::Error>> {
         let divider = (1000 / u32::from(rate_hz.clamp(4, 1000))).saturating_sub(1) as u8;
         self.write(PWR_MGMT_1, 0x01)?;
         self.write(CONFIG, 0x03)?;
         self.write(SMPLRT_DIV, divider)?;
-        self.write(GYRO_CONFIG, range.bits())?;
+        self.write(GYRO_CONFIG, range_bits(range))?;
         self.range = range;
         Ok(())
     }
@@ -146,12 +114,12 @@ impl<I2C: I2c> Mpu6050<I2C> {
     ///
     /// # Errors
     /// A bus error.
-    pub fn yaw_rate(&mut self) -> Result<f32, Mpu6050Error<I2C::Error>> {
+    pub fn yaw_rate(&mut self) -> Result<f32, GyroError<I2C::Error>> {
         let mut b = [0u8; 2];
         self.i2c
             .write_read(self.address, &[GYRO_ZOUT_H], &mut b)
-            .map_err(Mpu6050Error::Bus)?;
-        Ok(f32::from(i16::from_be_bytes(b)) * self.range.rad_per_lsb())
+            .map_err(GyroError::Bus)?;
+        Ok(f32::from(i16::from_be_bytes(b)) * rad_per_lsb(self.range))
     }
 
     /// Gives the bus back.
@@ -159,62 +127,18 @@ impl<I2C: I2c> Mpu6050<I2C> {
         self.i2c
     }
 
-    fn write(&mut self, register: u8, value: u8) -> Result<(), Mpu6050Error<I2C::Error>> {
+    fn write(&mut self, register: u8, value: u8) -> Result<(), GyroError<I2C::Error>> {
         self.i2c
             .write(self.address, &[register, value])
-            .map_err(Mpu6050Error::Bus)
+            .map_err(GyroError::Bus)
     }
 }
 
-/// The gyro's bias from the rates measured while the robot stands still (module docs).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct StillBias {
-    /// Samples needed before the mean is believed.
-    pub min_samples: u32,
-    /// Largest standard deviation of still samples, rad/s: more means something moved.
-    pub max_spread: f32,
-    n: u32,
-    mean: f64,
-    m2: f64,
-}
+impl<I2C: I2c> YawGyro for Mpu6050<I2C> {
+    type Error = I2C::Error;
 
-impl StillBias {
-    /// An estimator that believes `min_samples` still samples whose spread stays below
-    /// `max_spread` rad/s.
-    pub const fn new(min_samples: u32, max_spread: f32) -> Self {
-        StillBias {
-            min_samples,
-            max_spread,
-            n: 0,
-            mean: 0.0,
-            m2: 0.0,
-        }
-    }
-
-    /// Adds a rate measured while standing still (Welford's running mean and variance).
-    pub fn push(&mut self, rate: f32) {
-        if !rate.is_finite() {
-            return;
-        }
-        self.n = self.n.saturating_add(1);
-        let x = f64::from(rate);
-        let d = x - self.mean;
-        self.mean += d / f64::from(self.n);
-        self.m2 += d * (x - self.mean);
-    }
-
-    /// Forgets the samples (the robot moved, or their spread showed it was not still).
-    pub fn clear(&mut self) {
-        *self = StillBias::new(self.min_samples, self.max_spread);
-    }
-
-    /// The bias, once enough samples agree.
-    pub fn bias(&self) -> Option<f32> {
-        if self.n < self.min_samples.max(2) {
-            return None;
-        }
-        let spread = libm::sqrt(self.m2 / f64::from(self.n - 1));
-        (spread <= f64::from(self.max_spread)).then_some(self.mean as f32)
+    fn yaw_rate(&mut self) -> Result<f32, GyroError<I2C::Error>> {
+        Mpu6050::yaw_rate(self)
     }
 }
 
@@ -270,7 +194,7 @@ mod tests {
         let t = [Transaction::write_read(0x68, vec![WHO_AM_I], vec![0x12])];
         let mut i2c = Mock::new(&t);
         let e = Mpu6050::probe(i2c.clone(), DEFAULT_ADDRESS).expect_err("not a gyro");
-        assert_eq!(e, Mpu6050Error::NotFound { who_am_i: 0x12 });
+        assert_eq!(e, GyroError::NotFound { who_am_i: 0x12 });
         i2c.done();
     }
 
@@ -286,29 +210,7 @@ mod tests {
         let mut g = Mpu6050::probe(i2c.clone(), DEFAULT_ADDRESS).expect("found");
         g.reset().expect("reset");
         g.configure(GyroRange::Dps500, 100).expect("configured");
-        assert_eq!(g.yaw_rate(), Err(Mpu6050Error::Bus(ErrorKind::Other)));
+        assert_eq!(g.yaw_rate(), Err(GyroError::Bus(ErrorKind::Other)));
         i2c.done();
-    }
-
-    #[test]
-    fn the_bias_is_the_still_mean_only_when_nothing_moved() {
-        let mut b = StillBias::new(100, 0.01);
-        // A bias of 0.02 rad/s with +-0.005 of noise.
-        for k in 0..99 {
-            b.push(0.02 + if k % 2 == 0 { 0.005 } else { -0.005 });
-        }
-        assert_eq!(b.bias(), None, "too few samples");
-        b.push(f32::NAN);
-        assert_eq!(b.bias(), None, "NaN is not a sample");
-        b.push(0.02);
-        let bias = b.bias().expect("enough still samples");
-        assert!((bias - 0.02).abs() < 1e-4, "{bias}");
-        // Pushed by hand: a turn in the samples spreads them beyond the bound.
-        for _ in 0..20 {
-            b.push(0.5);
-        }
-        assert_eq!(b.bias(), None);
-        b.clear();
-        assert_eq!(b.bias(), None);
     }
 }

@@ -13,6 +13,7 @@
 //! without the devices.
 
 pub mod emulate;
+pub mod i2c_gyro;
 pub mod port;
 pub mod record;
 pub mod serial_base;
@@ -157,6 +158,11 @@ pub struct RunArgs {
     /// motion seeds each scan.
     #[arg(long, value_name = "KIND:PATH[@BAUD]")]
     pub odom: Option<OdomSpec>,
+    /// Gyro on the robot's I2C bus, `KIND:PATH[@ADDRESS]`: `mpu6050:/dev/i2c-1` (InvenSense
+    /// MPU-6050 family, address 0x68) or `lsm6ds:/dev/i2c-1` (STMicroelectronics LSM6DS
+    /// family, 0x6a), mounted face up. The robot must stand still for its first second.
+    #[arg(long, value_name = "KIND:PATH[@ADDRESS]")]
+    pub imu: Option<i2c_gyro::ImuSpec>,
     /// Also record every scan and odometry pose to this ROS 2 bag (`cloi map FILE` replays
     /// it).
     #[arg(long, value_name = "FILE.mcap")]
@@ -210,7 +216,18 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
     }));
     let counters = Arc::new(Mutex::new(DeviceCounters::default()));
     let base_counters = Arc::new(Mutex::new(BaseCounters::default()));
+    let gyro_counters = Arc::new(Mutex::new(i2c_gyro::GyroCounters::default()));
     let (tx, rx) = std::sync::mpsc::sync_channel(CHANNEL);
+    let gyro = match &args.imu {
+        Some(imu) => Some(i2c_gyro::start(
+            imu,
+            Arc::clone(&recorder),
+            tx.clone(),
+            Arc::clone(&stop),
+            Arc::clone(&gyro_counters),
+        )?),
+        None => None,
+    };
     let base = match &args.odom {
         Some(odom) => Some(
             SerialBase {
@@ -282,10 +299,14 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
         b.join()
             .unwrap_or_else(|_| Err(anyhow::anyhow!("the base's thread panicked")))
     });
+    let gyro_ended = gyro.map(|g| {
+        g.join()
+            .unwrap_or_else(|_| Err(anyhow::anyhow!("the gyro's thread panicked")))
+    });
     let recorded = record::finish(&recorder);
     let mut report = mapped?;
     recorded?;
-    if let Some(ended) = base_ended {
+    for ended in [base_ended, gyro_ended].into_iter().flatten() {
         ended?;
     }
     let device = *counters
@@ -309,7 +330,6 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
             );
         }
     }
-    report.write(&args.out.join("report.json"))?;
     if device.crc_errors + device.read_errors > 0 {
         log::warn!(
             "the LiDAR sent {} damaged packets and went away {} times",
@@ -317,6 +337,18 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
             device.read_errors
         );
     }
+    if args.imu.is_some() {
+        let gyro = *gyro_counters
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        report
+            .extra
+            .insert("gyro".into(), serde_json::to_value(gyro)?);
+        if gyro.read_errors > 0 {
+            log::warn!("{} gyro readings failed", gyro.read_errors);
+        }
+    }
+    report.write(&args.out.join("report.json"))?;
     if args.json {
         writeln!(out, "{}", serde_json::to_string_pretty(&report)?)?;
     }

@@ -1,7 +1,8 @@
 //! `cloi run --record FILE.mcap`: what the devices send, written to a ROS 2 bag as they send
 //! it, so that `cloi map FILE.mcap` replays the run: `/scan` (`sensor_msgs/LaserScan` in frame
-//! `laser`), the LiDAR's mounting once on `/tf_static`, and `/odom` (`nav_msgs/Odometry`, `odom`
-//! to `base_link`) from a wheel-odometry device. Every device thread writes into the one
+//! `laser`), the LiDAR's mounting once on `/tf_static`, `/odom` (`nav_msgs/Odometry`, `odom` to
+//! `base_link`) from a wheel-odometry device and `/imu` (`sensor_msgs/Imu`, the yaw rate) from a
+//! gyro. Every device thread writes into the one
 //! recording; a write that fails stops the recording with a warning, never the run.
 
 use std::path::Path;
@@ -12,8 +13,8 @@ use cloi_core::Se2;
 
 use crate::io::bag::BagWriter;
 use crate::io::ros2::{
-    Header, LaserScan, Odometry, Pose, PoseWithCovariance, TfMessage, Time, Transform,
-    TransformStamped,
+    Header, Imu, LaserScan, Odometry, Pose, PoseWithCovariance, TfMessage, Time, Transform,
+    TransformStamped, Vector3,
 };
 use crate::map::input::ScanEvent;
 
@@ -102,6 +103,28 @@ impl Recorder {
             ..Odometry::default()
         };
         self.bag.write("/odom", t_ns, &msg)
+    }
+
+    /// Writes one yaw rate (rad/s) as an IMU message without orientation or acceleration.
+    ///
+    /// # Errors
+    /// The write fails.
+    pub fn gyro(&mut self, t_ns: i64, yaw_rate: f64) -> Result<()> {
+        // -1 in a covariance's first element: the quantity is not measured.
+        let mut unknown = [0.0; 9];
+        unknown[0] = -1.0;
+        let msg = Imu {
+            header: Header::new(Time::from_nanos(t_ns), "imu"),
+            orientation_covariance: unknown,
+            angular_velocity: Vector3 {
+                x: 0.0,
+                y: 0.0,
+                z: yaw_rate,
+            },
+            linear_acceleration_covariance: unknown,
+            ..Imu::default()
+        };
+        self.bag.write("/imu", t_ns, &msg)
     }
 
     /// Closes the bag.
