@@ -87,6 +87,9 @@ pub enum EmulateCommand {
     /// A Slamtec RPLIDAR: prints the terminal's path, then answers scan requests with the
     /// simulated scans.
     Rplidar(crate::live::emulate::EmulateArgs),
+    /// A Hokuyo URG-04LX (SCIP 2.0): prints the terminal's path, then answers requests for its
+    /// parameters and for continuous scans with the simulated scans.
+    Urg(crate::live::emulate::EmulateArgs),
 }
 
 /// Runs a parsed command line, writing normal output to `out`.
@@ -111,6 +114,9 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         }
         Command::Emulate(EmulateCommand::Rplidar(args)) => {
             crate::live::emulate::run(crate::live::LidarKind::Rplidar, &args, out)
+        }
+        Command::Emulate(EmulateCommand::Urg(args)) => {
+            crate::live::emulate::run(crate::live::LidarKind::Urg, &args, out)
         }
     }
 }

@@ -244,6 +244,57 @@ fn an_emulated_create2_gives_the_live_map_its_wheel_odometry() {
 }
 
 #[test]
+fn an_emulated_hokuyo_is_asked_for_its_parameters_and_mapped() {
+    // One scan in ten with a damaged line: dropped whole and counted.
+    let emulator = emulate_kind("urg", &["--duration", "60", "--corrupt-every", "10"]);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let out = tmp.path().join("live");
+    let recording = tmp.path().join("run.mcap");
+    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(["-q", "run", "--lidar", &format!("urg:{}", emulator.path)])
+        .args(["--duration", "5", "--record"])
+        .arg(&recording)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("cloi run");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out);
+    let device = &r["device"];
+    let n = |k: &str| device[k].as_u64().expect(k);
+    assert!(n("scans") >= 10, "{device}");
+    // Each damaged scan fails one line's check and is dropped; none is taken whole.
+    let (good, bad) = (n("scans"), n("crc_errors"));
+    assert!(
+        bad > 0 && bad == n("revolutions_dropped") && bad * 9 <= good + 9 && good <= bad * 9 + 9,
+        "{device}"
+    );
+    check_outputs(&out, &r);
+    // The scans are the device's own: 682 steps over 240 degrees from its parameters (`PP`),
+    // at most 5.6 m, as the recording shows.
+    let scans: Vec<cloi_host::map::input::ScanEvent> =
+        cloi_host::map::input::open_input(&recording, &Default::default())
+            .expect("the recording opens")
+            .filter_map(|e| match e.expect("event") {
+                cloi_host::map::input::SensorEvent::Scan(s) => Some(s),
+                _ => None,
+            })
+            .collect();
+    assert_eq!(scans.len() as u64, good);
+    let s = &scans[0];
+    let last = s.angle_min + s.angle_increment * (s.ranges.len() - 1) as f32;
+    assert_eq!(s.ranges.len(), 682);
+    assert!(
+        (s.angle_min.to_degrees() + 119.53).abs() < 0.01,
+        "{}",
+        s.angle_min
+    );
+    assert!((last.to_degrees() - 119.88).abs() < 0.01, "{last}");
+    assert_eq!((s.range_min, s.range_max), (0.02, 5.6));
+    assert!(s.ranges.iter().filter(|r| r.is_finite()).count() > 300);
+}
+
+#[test]
 fn an_emulated_rplidar_is_asked_to_scan_and_mapped() {
     // One node in fifty with its check bit broken: the reader finds the node grid again.
     let emulator = emulate_kind("rplidar", &["--duration", "60", "--corrupt-every", "50"]);

@@ -11,6 +11,8 @@
 //!   points gathered into whole revolutions.
 //! * [`rplidar`]: the Slamtec RPLIDAR (A1, A2, C1) standard scan: requests, descriptor and
 //!   nodes decoded byte by byte, gathered into the same revolutions as the LD06's points.
+//! * [`urg`]: Hokuyo's SCIP 2.0 (URG-04LX, UTM-30LX): requests, parameters and the scans of
+//!   `MD` / `GD` decoded line by line.
 //! * [`create2`]: the iRobot Create 2's Open Interface as a wheel-odometry source: the
 //!   encoder stream's requests and frames, the counts integrated into a pose.
 //! * [`gyro`]: what the gyro drivers share (full scales, errors, the yaw rate as a trait) and
@@ -31,6 +33,7 @@ mod odometry;
 pub mod rplidar;
 mod scan;
 mod time;
+pub mod urg;
 
 pub use image::{ImageError, ImageView, PixelFormat};
 pub use odometry::{ImuSample, OdometrySample, Twist2};

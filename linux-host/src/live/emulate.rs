@@ -7,15 +7,18 @@
 //! * an LD06 streams from the start, clockwise, [`PACKETS_PER_TURN`] packets of 12 points with
 //!   their CRC-8;
 //! * an RPLIDAR answers the requests of the standard scan (scan, stop, reset, health) as the
-//!   real one does; its turn is 360 nodes, one a degree, the first flagged as a new turn.
+//!   real one does; its turn is 360 nodes, one a degree, the first flagged as a new turn;
+//! * a Hokuyo (`urg`) answers SCIP 2.0 requests: its parameters (`PP`, a URG-04LX's:
+//!   [`URG_PARAMS`]), and once asked for continuous scans (`MD`) each turn as one response of
+//!   682 steps over 240 degrees, 5.6 m at most.
 //!
 //! `--base create2` also emulates the robot's base on a second terminal (`create2 on
 //! /dev/pts/M`): an iRobot Create 2 that, once its interface is started and its stream asked
 //! for, sends the wheel encoder counts of the simulated wheel odometry every time the
 //! simulator measures it. Without it `cloi run` maps from scans alone.
 //!
-//! `--corrupt-every N` flips a bit in every N-th packet and every N-th frame of the base (the
-//! reader must count the failed check and keep the rest); the emulator ends after
+//! `--corrupt-every N` flips a bit in every N-th packet (every N-th scan of a Hokuyo) and every
+//! N-th frame of the base (the reader must count the failed check and keep the rest); the emulator ends after
 //! `--duration` seconds of data, which closes the terminals as unplugged devices would.
 
 use std::io::Write;
@@ -33,7 +36,7 @@ use super::LidarKind;
 use crate::map::input::{sim_input_with, ScanEvent, SensorEvent};
 use crate::sim::lidar::LidarParams;
 use crate::sim::{SensorSet, SimConfig};
-use cloi_core::sensor::rplidar;
+use cloi_core::sensor::{rplidar, urg};
 
 /// Packets of one emulated turn (456 points, 0.79 degree apart, as the LD06 measures).
 pub const PACKETS_PER_TURN: usize = 38;
@@ -87,6 +90,7 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
     let name = match kind {
         LidarKind::Ld06 => "ld06",
         LidarKind::Rplidar => "rplidar",
+        LidarKind::Urg => "urg",
     };
     let (mut master, slave) = terminal(name, args.path_file.as_deref(), out)?;
     let mut base = match args.base {
@@ -103,6 +107,8 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
     let mut previous: Option<i64> = None;
     // An LD06 streams from power-up; an RPLIDAR only once asked to scan.
     let mut commands = Commands::default();
+    let mut urg_lines = UrgLines::default();
+    let mut md_echo = Vec::new();
     let mut scanning = kind == LidarKind::Ld06;
     let sim = SimConfig {
         duration: args.duration,
@@ -152,6 +158,35 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
                 }
             }
         }
+        if kind == LidarKind::Urg {
+            for line in urg_lines.read(&mut master) {
+                bytes.extend_from_slice(&line);
+                bytes.push(b'\n');
+                match line.as_slice() {
+                    b"PP" => {
+                        bytes.extend_from_slice(b"00P\n");
+                        let mut l = [0u8; 24];
+                        for (name, v) in URG_PARAMS {
+                            let n = urg::UrgParams::line(name, v, &mut l);
+                            bytes.extend_from_slice(&l[..n]);
+                        }
+                        bytes.push(b'\n');
+                    }
+                    l if l.starts_with(b"MD") => {
+                        bytes.extend_from_slice(b"00P\n\n");
+                        scanning = true;
+                        md_echo = line.clone();
+                        md_echo.push(b'\n');
+                    }
+                    l => {
+                        bytes.extend_from_slice(b"00P\n\n");
+                        if l == b"QT" || l == b"RS" {
+                            scanning = false;
+                        }
+                    }
+                }
+            }
+        }
         // One turn per simulated scan: the head turns at the simulated LiDAR's rate.
         let turn_s = previous.map_or(0.1, |p| (scan.t_ns - p) as f64 * 1e-9);
         previous = Some(scan.t_ns);
@@ -168,6 +203,19 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
                         }
                         bytes.extend_from_slice(&b);
                     }
+                }
+                LidarKind::Urg => {
+                    let stamp_ms = (started.elapsed().as_millis() & 0xFF_FFFF) as u32;
+                    let ranges = urg_scan(&scan);
+                    let mut block = vec![0u8; md_echo.len() + 12 + 66 * (ranges.len() / 21 + 1)];
+                    let n = urg::write_scan(&md_echo, stamp_ms, &ranges, &mut block);
+                    block.truncate(n);
+                    packets += 1;
+                    if args.corrupt_every > 0 && packets.is_multiple_of(args.corrupt_every) {
+                        // A character of the first data line: its check fails.
+                        block[md_echo.len() + 4 + 6 + 2] ^= 0x01;
+                    }
+                    bytes.extend_from_slice(&block);
                 }
                 LidarKind::Rplidar => {
                     for node in rplidar_turn(&scan) {
@@ -347,6 +395,61 @@ impl Commands {
             }
         }
         out
+    }
+}
+
+/// The emulated Hokuyo's parameters (`PP`): a URG-04LX's, 240 degrees in 682 steps at 10 Hz,
+/// 2 cm to 5.6 m.
+pub const URG_PARAMS: [(&str, u32); 7] = [
+    ("DMIN", 20),
+    ("DMAX", 5600),
+    ("ARES", 1024),
+    ("AMIN", 44),
+    ("AMAX", 725),
+    ("AFRT", 384),
+    ("SCAN", 600),
+];
+
+/// The distances (mm) of the emulated Hokuyo's steps showing `scan`; 0 (an error code) where
+/// it shows nothing within the device's limits.
+pub fn urg_scan(scan: &ScanEvent) -> Vec<u32> {
+    let (ares, amin, amax, afrt) = (1024.0, 44, 725, 384);
+    (amin..=amax)
+        .map(|step| {
+            // Steps count counter-clockwise from the right; `range_mm` takes clockwise angles.
+            let ccw_deg = f64::from(step - afrt) * 360.0 / ares;
+            let cw_cdeg = (-100.0 * ccw_deg).rem_euclid(36_000.0);
+            u32::from(range_mm(scan, cw_cdeg, [0.02, 5.6]))
+        })
+        .collect()
+}
+
+/// Request lines an emulated Hokuyo has received.
+#[derive(Debug, Default)]
+struct UrgLines {
+    partial: Vec<u8>,
+}
+
+impl UrgLines {
+    /// The whole lines waiting on `port`, without their LF.
+    fn read(&mut self, port: &mut serialport::TTYPort) -> Vec<Vec<u8>> {
+        use serialport::SerialPort;
+        let waiting = port.bytes_to_read().unwrap_or(0) as usize;
+        let mut buf = vec![0u8; waiting.min(256)];
+        let n = if buf.is_empty() {
+            0
+        } else {
+            std::io::Read::read(port, &mut buf).unwrap_or(0)
+        };
+        let mut lines = Vec::new();
+        for &b in &buf[..n] {
+            if b == b'\n' {
+                lines.push(std::mem::take(&mut self.partial));
+            } else if self.partial.len() < 64 {
+                self.partial.push(b);
+            }
+        }
+        lines
     }
 }
 

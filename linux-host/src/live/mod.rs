@@ -61,6 +61,9 @@ pub enum LidarKind {
     /// Slamtec RPLIDAR A1, A2 or C1, standard scan (5-byte nodes; 115200 baud, the A1's and
     /// the A2M8's; give `@460800` for a C1, `@256000` for an A2M12).
     Rplidar,
+    /// Hokuyo URG-04LX, UTM-30LX or another SCIP 2.0 device (its USB port ignores the speed;
+    /// 115200 on a serial one).
+    Urg,
 }
 
 impl LidarKind {
@@ -68,7 +71,7 @@ impl LidarKind {
     pub fn default_baud(self) -> u32 {
         match self {
             LidarKind::Ld06 => 230_400,
-            LidarKind::Rplidar => 115_200,
+            LidarKind::Rplidar | LidarKind::Urg => 115_200,
         }
     }
 }
@@ -104,9 +107,10 @@ impl FromStr for LidarSpec {
         let kind = match kind {
             "ld06" | "ld19" => LidarKind::Ld06,
             "rplidar" => LidarKind::Rplidar,
+            "urg" => LidarKind::Urg,
             other => {
                 return Err(format!(
-                    "unknown LiDAR kind `{other}` (known: ld06, ld19, rplidar)"
+                    "unknown LiDAR kind `{other}` (known: ld06, ld19, rplidar, urg)"
                 ))
             }
         };
@@ -371,9 +375,11 @@ mod tests {
         assert_eq!((o.path.as_str(), o.baud), ("/dev/ttyUSB2", 115_200));
         assert!("create2:/dev/x@57600".parse::<OdomSpec>().is_ok());
         assert!("kobuki:/dev/x".parse::<OdomSpec>().is_err());
+        let u: LidarSpec = "urg:/dev/ttyACM0".parse().expect("parses");
+        assert_eq!(u.kind, LidarKind::Urg);
         for bad in [
             "ld06",
-            "urg:/dev/x",
+            "sick:/dev/x",
             "ld06:",
             "ld06:/dev/x@fast",
             "ld06:/dev/x@0",

@@ -32,6 +32,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result};
 use cloi_core::sensor::ld06::{Ld06Counters, PacketReader, Revolution};
 use cloi_core::sensor::rplidar::{self, NodeReader};
+use cloi_core::sensor::urg::{self, ScanReader, UrgParams};
 use cloi_core::Se2;
 use serde::Serialize;
 
@@ -68,9 +69,12 @@ pub struct DeviceCounters {
     pub bad_angles: u64,
     /// RPLIDAR nodes decoded.
     pub nodes: u64,
+    /// Hokuyo lines read (their failed checks count as CRC errors).
+    pub lines: u64,
     /// Whole revolutions sent on as scans.
     pub scans: u64,
-    /// Revolutions dropped: the partial first one after (re)opening, or too few returns.
+    /// Revolutions dropped: the partial first one after (re)opening, too few returns, or (a
+    /// Hokuyo) a damaged scan.
     pub revolutions_dropped: u64,
     /// Reads that failed (the device went away).
     pub read_errors: u64,
@@ -89,14 +93,18 @@ impl DeviceCounters {
         self.nodes += after.rplidar.nodes - before.rplidar.nodes;
         self.skipped_bytes += (after.ld06.skipped_bytes + after.rplidar.skipped_bytes)
             - (before.ld06.skipped_bytes + before.rplidar.skipped_bytes);
+        self.lines += after.urg.lines - before.urg.lines;
+        self.crc_errors += after.urg.check_errors - before.urg.check_errors;
+        self.revolutions_dropped += after.urg.scans_dropped - before.urg.scans_dropped;
     }
 }
 
-/// The counters of either decoder.
+/// The counters of any decoder.
 #[derive(Clone, Copy, Debug, Default)]
 struct DecoderCounters {
     ld06: Ld06Counters,
     rplidar: rplidar::NodeCounters,
+    urg: urg::UrgCounters,
 }
 
 /// Where and how to read the device.
@@ -115,13 +123,17 @@ pub struct SerialLidar {
 }
 
 impl SerialLidar {
-    /// Opens the port and, for an RPLIDAR, starts its scan.
-    fn open(&self) -> Result<Port> {
+    /// Opens the port and, for an RPLIDAR, starts its scan; a Hokuyo is asked for its
+    /// parameters, then for continuous scans of its whole span.
+    fn open(&self) -> Result<(Port, Option<UrgParams>)> {
         let mut port = port::open(&self.path, self.baud)?;
-        if self.kind == super::LidarKind::Rplidar {
-            start_rplidar(port.as_mut())?;
+        let mut urg = None;
+        match self.kind {
+            super::LidarKind::Rplidar => start_rplidar(port.as_mut())?,
+            super::LidarKind::Urg => urg = Some(start_urg(port.as_mut())?),
+            super::LidarKind::Ld06 => {}
         }
-        Ok(port)
+        Ok((port, urg))
     }
 
     /// Opens the port (a clear error if it cannot be) and starts the thread that reads it and
@@ -135,16 +147,22 @@ impl SerialLidar {
         stop: Arc<AtomicBool>,
         counters: Arc<Mutex<DeviceCounters>>,
     ) -> Result<std::thread::JoinHandle<Result<()>>> {
-        let port = self
+        let (port, urg) = self
             .open()
             .with_context(|| format!("opening the LiDAR's serial port {}", self.path))?;
         std::thread::Builder::new()
             .name("cloi-lidar".into())
             .spawn(move || {
-                let mut port = self.read_until_stopped(port, &tx, &stop, &counters);
-                if let (Some(p), super::LidarKind::Rplidar) = (port.as_mut(), self.kind) {
-                    // Leave the motor stopped (best effort: the device may be gone).
-                    let _ = p.write_all(&rplidar::request(rplidar::STOP));
+                let mut port = self.read_until_stopped(port, urg, &tx, &stop, &counters);
+                // Leave the motor or laser stopped (best effort: the device may be gone).
+                match (port.as_mut(), self.kind) {
+                    (Some(p), super::LidarKind::Rplidar) => {
+                        let _ = p.write_all(&rplidar::request(rplidar::STOP));
+                    }
+                    (Some(p), super::LidarKind::Urg) => {
+                        let _ = p.write_all(urg::QT);
+                    }
+                    _ => {}
                 }
                 Ok(())
             })
@@ -154,6 +172,7 @@ impl SerialLidar {
     fn read_until_stopped(
         &self,
         port: Port,
+        urg: Option<UrgParams>,
         tx: &SyncSender<Result<SensorEvent>>,
         stop: &AtomicBool,
         counters: &Mutex<DeviceCounters>,
@@ -163,7 +182,7 @@ impl SerialLidar {
                 .lock()
                 .unwrap_or_else(std::sync::PoisonError::into_inner));
         };
-        let mut assembler = Assembler::new(self.kind, self.mounting);
+        let mut assembler = Assembler::new(self.kind, self.mounting, urg);
         let handle = |event: PortEvent<'_>| {
             let bytes = match event {
                 PortEvent::Bytes(bytes) => bytes,
@@ -173,7 +192,7 @@ impl SerialLidar {
                 }
                 PortEvent::Reopened => {
                     count(&mut |c| c.reopened += 1);
-                    assembler = Assembler::new(self.kind, self.mounting);
+                    assembler = Assembler::new(self.kind, self.mounting, urg);
                     return true;
                 }
             };
@@ -204,7 +223,14 @@ impl SerialLidar {
             }
             true
         };
-        port::read_until_stopped(&self.path, "LiDAR", port, stop, &|| self.open(), handle)
+        port::read_until_stopped(
+            &self.path,
+            "LiDAR",
+            port,
+            stop,
+            &|| self.open().map(|(p, _)| p),
+            handle,
+        )
     }
 }
 
@@ -241,11 +267,60 @@ fn start_rplidar(port: &mut dyn serialport::SerialPort) -> Result<()> {
     Ok(())
 }
 
+/// How long a Hokuyo may take to answer a request.
+const URG_ANSWER_WAIT: Duration = Duration::from_secs(2);
+
+/// Switches a Hokuyo to SCIP 2.0, stops what it was doing, reads its parameters (`PP`) and
+/// asks for continuous scans of its whole span (`MD`).
+fn start_urg(port: &mut dyn serialport::SerialPort) -> Result<UrgParams> {
+    // A device already in SCIP 2.0 refuses the switch; either answer will do.
+    port.write_all(urg::SCIP2)?;
+    let _ = urg_answer(port);
+    port.write_all(urg::QT)?;
+    let _ = urg_answer(port);
+    port.write_all(urg::PP)?;
+    let mut params = UrgParams::default();
+    for line in urg_answer(port)? {
+        params.take_line(&line);
+    }
+    if !params.usable() {
+        anyhow::bail!("the Hokuyo's parameters (PP) are not usable: {params:?}");
+    }
+    let (first, last) = (params.amin as u16, params.amax as u16);
+    port.write_all(&urg::md_request(first, last))?;
+    Ok(params)
+}
+
+/// The lines of one answer, up to its empty line.
+fn urg_answer(port: &mut dyn serialport::SerialPort) -> Result<Vec<Vec<u8>>> {
+    let until = Instant::now() + URG_ANSWER_WAIT;
+    let (mut lines, mut line) = (Vec::new(), Vec::new());
+    let mut byte = [0u8];
+    loop {
+        if Instant::now() > until {
+            anyhow::bail!("no answer from the Hokuyo within {URG_ANSWER_WAIT:?}");
+        }
+        match port.read(&mut byte) {
+            Ok(1) if byte[0] == b'\n' => {
+                if line.is_empty() {
+                    return Ok(lines);
+                }
+                lines.push(std::mem::take(&mut line));
+            }
+            Ok(1) => line.push(byte[0]),
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
+            Err(e) => return Err(e.into()),
+        }
+    }
+}
+
 /// A device's protocol decoder.
 #[derive(Debug)]
 enum Decoder {
     Ld06(PacketReader),
     Rplidar(NodeReader),
+    Urg(Box<ScanReader>, UrgParams),
 }
 
 /// Bytes to points to scans.
@@ -263,10 +338,17 @@ struct Assembler {
 }
 
 impl Assembler {
-    fn new(kind: super::LidarKind, mounting: Se2) -> Self {
+    fn new(kind: super::LidarKind, mounting: Se2, urg: Option<UrgParams>) -> Self {
         let (decoder, range) = match kind {
             super::LidarKind::Ld06 => (Decoder::Ld06(PacketReader::new()), [RANGE_MIN, RANGE_MAX]),
             super::LidarKind::Rplidar => (Decoder::Rplidar(NodeReader::new()), RPLIDAR_RANGE),
+            super::LidarKind::Urg => {
+                let p = urg.unwrap_or_default();
+                (
+                    Decoder::Urg(Box::new(ScanReader::new()), p),
+                    [p.dmin as f32 / 1000.0, p.dmax as f32 / 1000.0],
+                )
+            }
         };
         Assembler {
             decoder,
@@ -290,12 +372,59 @@ impl Assembler {
                 rplidar: r.counters(),
                 ..DecoderCounters::default()
             },
+            Decoder::Urg(r, _) => DecoderCounters {
+                urg: r.counters(),
+                ..DecoderCounters::default()
+            },
         }
+    }
+
+    /// A Hokuyo's next byte: its scans come whole, in the device's own steps.
+    fn push_urg(&mut self, byte: u8) -> Option<Result<ScanEvent, ()>> {
+        let Decoder::Urg(reader, p) = &mut self.decoder else {
+            return None;
+        };
+        let scan = reader.push(byte)?;
+        let p = *p;
+        let turn = 2.0 * std::f64::consts::PI / f64::from(p.ares);
+        let step_s = 60.0 / (f64::from(p.scan_rpm) * f64::from(p.ares));
+        let ranges: Vec<f32> = reader
+            .ranges_mm()
+            .iter()
+            .map(|&mm| {
+                if (p.dmin..=p.dmax).contains(&mm) {
+                    mm as f32 / 1000.0
+                } else {
+                    f32::NAN
+                }
+            })
+            .collect();
+        if ranges.iter().filter(|r| r.is_finite()).count() < MIN_POINTS as usize {
+            return Some(Err(()));
+        }
+        // The scan was sent once its last step was measured: its first step came a span
+        // earlier.
+        let span_ns = (scan.steps as f64 * step_s * 1e9) as i64;
+        let stamp = (port::now_ns() - span_ns).max(self.last_stamp.saturating_add(1));
+        self.last_stamp = stamp;
+        Some(Ok(ScanEvent {
+            t_ns: stamp,
+            ranges,
+            angle_min: ((f64::from(p.amin) - f64::from(p.afrt)) * turn) as f32,
+            angle_increment: turn as f32,
+            range_min: self.range[0],
+            range_max: self.range[1],
+            time_increment: step_s as f32,
+            laser_offset: self.mounting,
+            odom: None,
+            received: Some(Instant::now()),
+        }))
     }
 
     /// The next byte; a scan (or a dropped revolution) when it completed one.
     fn push(&mut self, byte: u8) -> Option<Result<ScanEvent, ()>> {
         let (points, speed_dps) = match &mut self.decoder {
+            Decoder::Urg(..) => return self.push_urg(byte),
             Decoder::Ld06(r) => {
                 let packet = r.push(byte)?;
                 (
@@ -371,7 +500,7 @@ mod tests {
 
     #[test]
     fn whole_turns_become_scans_after_the_first_and_damage_is_counted() {
-        let mut a = Assembler::new(super::super::LidarKind::Ld06, Se2::new(0.1, 0.0, 0.0));
+        let mut a = Assembler::new(super::super::LidarKind::Ld06, Se2::new(0.1, 0.0, 0.0), None);
         let mut bytes = turns(4, 2000);
         // One flipped bit in the third turn's first packet.
         bytes[2 * 38 * 47 + 10] ^= 0x10;
