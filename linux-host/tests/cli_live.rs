@@ -55,6 +55,13 @@ fn report(out: &Path) -> serde_json::Value {
     serde_json::from_str(&text).expect("json")
 }
 
+/// Whether `bad` of `good + bad` is one in `n`, give or take one (the run starts and ends
+/// anywhere in the emulator's count).
+fn one_in(n: u64, good: u64, bad: u64) -> bool {
+    let k = n - 1;
+    bad > 0 && bad * k <= good + k && good <= bad * k + k
+}
+
 fn check_outputs(out: &Path, r: &serde_json::Value) {
     let scans = r["scans"].as_u64().expect("scans");
     assert_eq!(r["device"]["scans"].as_u64(), Some(scans), "{r}");
@@ -100,10 +107,7 @@ fn an_emulated_ld06_is_mapped_live_and_damage_and_loss_are_counted() {
     assert!(n("scans") >= 10, "{device}");
     // One packet in ten: each fails its CRC and none is taken for a good one.
     let (good, bad) = (n("packets"), n("crc_errors"));
-    assert!(
-        bad > 0 && bad * 9 <= good + 9 && good <= bad * 9 + 9,
-        "{device}"
-    );
+    assert!(one_in(10, good, bad), "{device}");
     // The emulator's end is a device that went away; the run waited and ended on time.
     assert!(n("read_errors") >= 1, "{device}");
     assert!(stderr.contains("damaged packets"), "{stderr}");
@@ -185,10 +189,7 @@ fn an_emulated_create2_gives_the_live_map_its_wheel_odometry() {
     // The simulator measures the wheels at 50 Hz: a frame each time.
     assert!(n("poses") >= 600, "{b}");
     let (good, bad) = (n("frames"), n("checksum_errors"));
-    assert!(
-        bad > 0 && bad * 19 <= good + 19 && good <= bad * 19 + 19,
-        "{b}"
-    );
+    assert!(one_in(20, good, bad), "{b}");
     assert_eq!(n("poses"), good, "{b}");
     assert!(n("read_errors") >= 1, "{b}");
     assert!(stderr.contains("damaged frames"), "{stderr}");
@@ -266,7 +267,7 @@ fn an_emulated_hokuyo_is_asked_for_its_parameters_and_mapped() {
     // Each damaged scan fails one line's check and is dropped; none is taken whole.
     let (good, bad) = (n("scans"), n("crc_errors"));
     assert!(
-        bad > 0 && bad == n("revolutions_dropped") && bad * 9 <= good + 9 && good <= bad * 9 + 9,
+        one_in(10, good, bad) && bad == n("revolutions_dropped"),
         "{device}"
     );
     check_outputs(&out, &r);

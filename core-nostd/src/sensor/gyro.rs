@@ -35,6 +35,52 @@ pub enum GyroError<E> {
     },
 }
 
+/// A chip's registers at `address` on an I2C bus: what both gyro drivers read and write.
+#[derive(Debug)]
+pub(crate) struct Registers<I2C> {
+    i2c: I2C,
+    address: u8,
+}
+
+impl<I2C: embedded_hal::i2c::I2c> Registers<I2C> {
+    /// The chip at `address` if its `who_am_i` register reads one of `known`.
+    pub(crate) fn probe(
+        mut i2c: I2C,
+        address: u8,
+        who_am_i: u8,
+        known: &[u8],
+    ) -> Result<Self, GyroError<I2C::Error>> {
+        let mut who = [0u8];
+        i2c.write_read(address, &[who_am_i], &mut who)
+            .map_err(GyroError::Bus)?;
+        if !known.contains(&who[0]) {
+            return Err(GyroError::NotFound { who_am_i: who[0] });
+        }
+        Ok(Registers { i2c, address })
+    }
+
+    /// Writes `value` into `register`.
+    pub(crate) fn write(&mut self, register: u8, value: u8) -> Result<(), GyroError<I2C::Error>> {
+        self.i2c
+            .write(self.address, &[register, value])
+            .map_err(GyroError::Bus)
+    }
+
+    /// Two registers from `first` on.
+    pub(crate) fn read2(&mut self, first: u8) -> Result<[u8; 2], GyroError<I2C::Error>> {
+        let mut b = [0u8; 2];
+        self.i2c
+            .write_read(self.address, &[first], &mut b)
+            .map_err(GyroError::Bus)?;
+        Ok(b)
+    }
+
+    /// Gives the bus back.
+    pub(crate) fn release(self) -> I2C {
+        self.i2c
+    }
+}
+
 /// A gyro that reads the rate about the robot's vertical axis.
 pub trait YawGyro {
     /// The bus's error.

@@ -15,7 +15,7 @@
 
 use embedded_hal::i2c::I2c;
 
-use super::gyro::{GyroError, GyroRange, YawGyro};
+use super::gyro::{GyroError, GyroRange, Registers, YawGyro};
 
 /// The chip's I2C address with its SA0 pin low (`0x6B` with SA0 high).
 pub const DEFAULT_ADDRESS: u8 = 0x6A;
@@ -61,8 +61,7 @@ fn rate_bits(rate_hz: u16) -> u8 {
 /// An LSM6DS family part on an I2C bus.
 #[derive(Debug)]
 pub struct Lsm6ds<I2C> {
-    i2c: I2C,
-    address: u8,
+    regs: Registers<I2C>,
     range: GyroRange,
 }
 
@@ -71,16 +70,9 @@ impl<I2C: I2c> Lsm6ds<I2C> {
     ///
     /// # Errors
     /// A bus error, or [`GyroError::NotFound`] with what answered.
-    pub fn probe(mut i2c: I2C, address: u8) -> Result<Self, GyroError<I2C::Error>> {
-        let mut who = [0u8];
-        i2c.write_read(address, &[WHO_AM_I], &mut who)
-            .map_err(GyroError::Bus)?;
-        if !KNOWN_PARTS.contains(&who[0]) {
-            return Err(GyroError::NotFound { who_am_i: who[0] });
-        }
+    pub fn probe(i2c: I2C, address: u8) -> Result<Self, GyroError<I2C::Error>> {
         Ok(Lsm6ds {
-            i2c,
-            address,
+            regs: Registers::probe(i2c, address, WHO_AM_I, &KNOWN_PARTS)?,
             range: GyroRange::Dps250,
         })
     }
@@ -90,7 +82,7 @@ impl<I2C: I2c> Lsm6ds<I2C> {
     /// # Errors
     /// A bus error.
     pub fn reset(&mut self) -> Result<(), GyroError<I2C::Error>> {
-        self.write(CTRL3_C, 0x01)
+        self.regs.write(CTRL3_C, 0x01)
     }
 
     /// Sets the gyro: `range` and the slowest output rate of at least `rate_hz` (12.5 Hz to
@@ -103,8 +95,9 @@ impl<I2C: I2c> Lsm6ds<I2C> {
         range: GyroRange,
         rate_hz: u16,
     ) -> Result<(), GyroError<I2C::Error>> {
-        self.write(CTRL3_C, 0x44)?;
-        self.write(CTRL2_G, rate_bits(rate_hz) | range_bits(range))?;
+        self.regs.write(CTRL3_C, 0x44)?;
+        self.regs
+            .write(CTRL2_G, rate_bits(rate_hz) | range_bits(range))?;
         self.range = range;
         Ok(())
     }
@@ -115,22 +108,13 @@ impl<I2C: I2c> Lsm6ds<I2C> {
     /// # Errors
     /// A bus error.
     pub fn yaw_rate(&mut self) -> Result<f32, GyroError<I2C::Error>> {
-        let mut b = [0u8; 2];
-        self.i2c
-            .write_read(self.address, &[OUTZ_L_G], &mut b)
-            .map_err(GyroError::Bus)?;
+        let b = self.regs.read2(OUTZ_L_G)?;
         Ok(f32::from(i16::from_le_bytes(b)) * rad_per_lsb(self.range))
     }
 
     /// Gives the bus back.
     pub fn release(self) -> I2C {
-        self.i2c
-    }
-
-    fn write(&mut self, register: u8, value: u8) -> Result<(), GyroError<I2C::Error>> {
-        self.i2c
-            .write(self.address, &[register, value])
-            .map_err(GyroError::Bus)
+        self.regs.release()
     }
 }
 

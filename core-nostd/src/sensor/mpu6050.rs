@@ -19,7 +19,7 @@
 
 use embedded_hal::i2c::I2c;
 
-use super::gyro::{GyroError, GyroRange, YawGyro};
+use super::gyro::{GyroError, GyroRange, Registers, YawGyro};
 
 /// The chip's I2C address with its AD0 pin low (`0x69` with AD0 high).
 pub const DEFAULT_ADDRESS: u8 = 0x68;
@@ -58,8 +58,7 @@ fn rad_per_lsb(range: GyroRange) -> f32 {
 /// An MPU-6050 (or MPU-6500 / 9250 / 9255) on an I2C bus.
 #[derive(Debug)]
 pub struct Mpu6050<I2C> {
-    i2c: I2C,
-    address: u8,
+    regs: Registers<I2C>,
     range: GyroRange,
 }
 
@@ -68,16 +67,9 @@ impl<I2C: I2c> Mpu6050<I2C> {
     ///
     /// # Errors
     /// A bus error, or [`GyroError::NotFound`] with what answered.
-    pub fn probe(mut i2c: I2C, address: u8) -> Result<Self, GyroError<I2C::Error>> {
-        let mut who = [0u8];
-        i2c.write_read(address, &[WHO_AM_I], &mut who)
-            .map_err(GyroError::Bus)?;
-        if !KNOWN_PARTS.contains(&who[0]) {
-            return Err(GyroError::NotFound { who_am_i: who[0] });
-        }
+    pub fn probe(i2c: I2C, address: u8) -> Result<Self, GyroError<I2C::Error>> {
         Ok(Mpu6050 {
-            i2c,
-            address,
+            regs: Registers::probe(i2c, address, WHO_AM_I, &KNOWN_PARTS)?,
             range: GyroRange::Dps250,
         })
     }
@@ -87,7 +79,7 @@ impl<I2C: I2c> Mpu6050<I2C> {
     /// # Errors
     /// A bus error.
     pub fn reset(&mut self) -> Result<(), GyroError<I2C::Error>> {
-        self.write(PWR_MGMT_1, 0x80)
+        self.regs.write(PWR_MGMT_1, 0x80)
     }
 
     /// Wakes the chip and sets the gyro: `range`, a 44 Hz low-pass filter and `rate_hz`
@@ -101,10 +93,10 @@ impl<I2C: I2c> Mpu6050<I2C> {
         rate_hz: u16,
     ) -> Result<(), GyroError<I2C::Error>> {
         let divider = (1000 / u32::from(rate_hz.clamp(4, 1000))).saturating_sub(1) as u8;
-        self.write(PWR_MGMT_1, 0x01)?;
-        self.write(CONFIG, 0x03)?;
-        self.write(SMPLRT_DIV, divider)?;
-        self.write(GYRO_CONFIG, range_bits(range))?;
+        self.regs.write(PWR_MGMT_1, 0x01)?;
+        self.regs.write(CONFIG, 0x03)?;
+        self.regs.write(SMPLRT_DIV, divider)?;
+        self.regs.write(GYRO_CONFIG, range_bits(range))?;
         self.range = range;
         Ok(())
     }
@@ -115,22 +107,13 @@ impl<I2C: I2c> Mpu6050<I2C> {
     /// # Errors
     /// A bus error.
     pub fn yaw_rate(&mut self) -> Result<f32, GyroError<I2C::Error>> {
-        let mut b = [0u8; 2];
-        self.i2c
-            .write_read(self.address, &[GYRO_ZOUT_H], &mut b)
-            .map_err(GyroError::Bus)?;
+        let b = self.regs.read2(GYRO_ZOUT_H)?;
         Ok(f32::from(i16::from_be_bytes(b)) * rad_per_lsb(self.range))
     }
 
     /// Gives the bus back.
     pub fn release(self) -> I2C {
-        self.i2c
-    }
-
-    fn write(&mut self, register: u8, value: u8) -> Result<(), GyroError<I2C::Error>> {
-        self.i2c
-            .write(self.address, &[register, value])
-            .map_err(GyroError::Bus)
+        self.regs.release()
     }
 }
 

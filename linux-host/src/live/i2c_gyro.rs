@@ -24,7 +24,7 @@ use cloi_core::sensor::gyro::{GyroRange, StillBias, YawGyro};
 use cloi_core::sensor::{lsm6ds, mpu6050};
 use serde::Serialize;
 
-use super::port::now_ns;
+use super::port::{self, now_ns};
 use super::record::{self, SharedRecorder};
 use crate::map::input::SensorEvent;
 
@@ -160,11 +160,7 @@ pub fn read_rates<G: YawGyro>(
 where
     G::Error: std::fmt::Debug,
 {
-    let count = |f: &mut dyn FnMut(&mut GyroCounters)| {
-        f(&mut counters
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner));
-    };
+    let count = |f: &mut dyn FnMut(&mut GyroCounters)| port::update(counters, f);
     let period = Duration::from_secs_f64(1.0 / f64::from(RATE_HZ));
     let still_readings = (BIAS_SECONDS * f64::from(RATE_HZ)) as u32;
     let mut still = StillBias::new(still_readings * 4 / 5, STILL_SPREAD);

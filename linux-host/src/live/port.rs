@@ -80,6 +80,15 @@ pub fn read_until_stopped(
     port
 }
 
+/// Changes a device thread's counters (a thread that panicked holding them left them usable).
+pub fn update<T>(counters: &std::sync::Mutex<T>, change: &mut dyn FnMut(&mut T)) {
+    change(
+        &mut counters
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner),
+    );
+}
+
 /// The host's clock, ns since the Unix epoch: the time stamp of what a device sends.
 pub fn now_ns() -> i64 {
     std::time::SystemTime::now()

@@ -103,11 +103,7 @@ impl SerialBase {
         stop: &AtomicBool,
         counters: &Mutex<BaseCounters>,
     ) -> Option<Port> {
-        let count = |f: &mut dyn FnMut(&mut BaseCounters)| {
-            f(&mut counters
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner));
-        };
+        let count = |f: &mut dyn FnMut(&mut BaseCounters)| port::update(counters, f);
         let mut reader = StreamReader::new();
         let mut odometry = EncoderOdometry::new(WheelGeometry::CREATE2);
         let mut last_stamp = i64::MIN;

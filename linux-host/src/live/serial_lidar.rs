@@ -177,11 +177,7 @@ impl SerialLidar {
         stop: &AtomicBool,
         counters: &Mutex<DeviceCounters>,
     ) -> Option<Port> {
-        let count = |f: &mut dyn FnMut(&mut DeviceCounters)| {
-            f(&mut counters
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner));
-        };
+        let count = |f: &mut dyn FnMut(&mut DeviceCounters)| port::update(counters, f);
         let mut assembler = Assembler::new(self.kind, self.mounting, urg);
         let handle = |event: PortEvent<'_>| {
             let bytes = match event {
