@@ -18,8 +18,9 @@
 //! simulator measures it. Without it `cloi run` maps from scans alone.
 //!
 //! `--corrupt-every N` flips a bit in every N-th packet (every N-th scan of a Hokuyo) and every
-//! N-th frame of the base (the reader must count the failed check and keep the rest); the emulator ends after
-//! `--duration` seconds of data, which closes the terminals as unplugged devices would.
+//! N-th frame of the base (the reader must count the failed check and keep the rest). The
+//! emulator ends after `--duration` seconds of data, which closes the terminals as unplugged
+//! devices would, and prints how many turns (and base frames) it wrote whole.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -103,7 +104,7 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
     };
     let started = Instant::now();
     let mut first: Option<i64> = None;
-    let mut packets = 0u64;
+    let (mut packets, mut turns_sent) = (0u64, 0u64);
     let mut previous: Option<i64> = None;
     // An LD06 streams from power-up; an RPLIDAR only once asked to scan.
     let mut commands = Commands::default();
@@ -233,10 +234,19 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
         // Nobody reading (yet): like a device's UART, the turn is lost, not queued.
         match master.write_all(&bytes) {
             Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
-            r => r.context("writing to the terminal")?,
+            r => {
+                r.context("writing to the terminal")?;
+                turns_sent += u64::from(scanning);
+            }
         }
     }
     drop(slave);
+    // What was sent, to compare with what the reader counted.
+    write!(out, "sent {turns_sent} turns")?;
+    if let Some(b) = &base {
+        write!(out, " and {} base frames", b.sent)?;
+    }
+    writeln!(out)?;
     Ok(())
 }
 
@@ -271,6 +281,8 @@ struct Create2 {
     /// Both wheels' counts, unrounded.
     counts: [f64; 2],
     frames: u64,
+    /// Frames written whole to the terminal.
+    sent: u64,
     corrupt_every: u64,
 }
 
@@ -291,6 +303,7 @@ impl Create2 {
             // Near the wrap, so that a run crosses it.
             counts: [65_000.0; 2],
             frames: 0,
+            sent: 0,
             corrupt_every,
         })
     }
@@ -360,7 +373,11 @@ impl Create2 {
         }
         match self.master.write_all(&frame) {
             Err(e) if e.kind() == std::io::ErrorKind::TimedOut => Ok(()),
-            r => r.context("writing to the base's terminal"),
+            r => {
+                r.context("writing to the base's terminal")?;
+                self.sent += 1;
+                Ok(())
+            }
         }
     }
 }
