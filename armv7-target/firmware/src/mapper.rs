@@ -37,10 +37,10 @@ use cloi_core::mapper::{
     BackendStep, Feeder, Mapper, MapperConfig, Probe, Pushed, ScanInput, ScanSlots, Section,
 };
 use cloi_core::profile::HomeResources;
-use cloi_core::Se2;
 use cloi_core::sensor::log::{
     LogError, LogReader, LogRecord, ReadError, MAX_BEAMS, MIN_READER_BUFFER,
 };
+use cloi_core::Se2;
 use semihosting::fs::File;
 use semihosting::println;
 
