@@ -20,7 +20,7 @@
 //! `--corrupt-every N` flips a bit in every N-th packet (every N-th scan of a Hokuyo) and every
 //! N-th frame of the base (the reader must count the failed check and keep the rest). The
 //! emulator ends after `--duration` seconds of data, which closes the terminals as unplugged
-//! devices would, and prints how many turns (and base frames) it wrote whole.
+//! devices would, and prints on stderr how many turns (and base frames) it wrote whole.
 
 use std::io::Write;
 use std::path::PathBuf;
@@ -241,12 +241,14 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
         }
     }
     drop(slave);
-    // What was sent, to compare with what the reader counted.
-    write!(out, "sent {turns_sent} turns")?;
-    if let Some(b) = &base {
-        write!(out, " and {} base frames", b.sent)?;
-    }
-    writeln!(out)?;
+    // What was sent, to compare with what the reader counted; on the terminal, not on the
+    // output a script may have stopped reading after the paths.
+    let frames = base.map(|b| format!(" and {} base frames", b.sent));
+    let _ = writeln!(
+        std::io::stderr(),
+        "sent {turns_sent} turns{}",
+        frames.unwrap_or_default()
+    );
     Ok(())
 }
 
