@@ -711,3 +711,69 @@ fn a_saved_home_is_localized_in_by_another_run_from_a_given_pose_and_from_nowher
         assert!(median < 0.05 && worst < 0.12, "{name}: {median} {worst}");
     }
 }
+
+#[test]
+fn a_later_session_extends_a_saved_home_and_saves_the_grown_map() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (dir, file) = (tmp.path().join("map"), tmp.path().join("home.cloimap"));
+    save_home(&dir, &file);
+    let first = report(&dir);
+    // What one session driving the whole 60 s makes of it: the reference the second session's
+    // poses are compared with.
+    let whole = tmp.path().join("whole");
+    let o = map_home("60", &whole).output().expect("cloi runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let reference = tum_rows(&whole.join("trajectory.tum"));
+    // The second session: the same route for 60 s with another draw of the sensor noise, found
+    // in the map by searching it whole, then mapping on past where the first session ended.
+    let (out_dir, grown) = (tmp.path().join("second"), tmp.path().join("grown.cloimap"));
+    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .args(["map", "--deterministic", "--quiet", "--sim-duration", "60"])
+        .args(["--sim-seed", "7", "--load"])
+        .arg(&file)
+        .arg("--save")
+        .arg(&grown)
+        .arg("--out")
+        .arg(&out_dir)
+        .output()
+        .expect("cloi runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r = report(&out_dir);
+    let (session, l) = (&r["session"], &r["localization"]);
+    eprintln!("{session:#} {l:#}");
+    assert_eq!(session["joined"], true);
+    // Its keyframes continue the map's serials, and the map grew by them.
+    let first_serial = session["first_serial"].as_u64().expect("a serial");
+    assert!(first_serial > 0 && first_serial <= first["keyframes"].as_u64().expect("count"));
+    assert!(r["keyframes"].as_u64().expect("count") > 50, "{r:#}");
+    assert!(r["nodes"].as_u64() > first["nodes"].as_u64(), "{r:#}");
+    let fix = l["time_to_first_fix_s"].as_f64().expect("a fix");
+    assert!(fix <= 5.0, "first fix after {fix} s");
+    // After the join the session's poses are where the single session put them (its scans
+    // come within 0.1 s of each other).
+    let ours = tum_rows(&out_dir.join("trajectory.tum"));
+    let mut errors: Vec<f64> = ours
+        .iter()
+        .filter(|g| g[0] >= ours[0][0] + fix + 0.5)
+        .filter_map(|g| {
+            let m = reference
+                .iter()
+                .min_by(|a, b| (a[0] - g[0]).abs().total_cmp(&(b[0] - g[0]).abs()))?;
+            ((m[0] - g[0]).abs() < 0.1).then(|| (m[1] - g[1]).hypot(m[2] - g[2]))
+        })
+        .collect();
+    errors.sort_by(f64::total_cmp);
+    assert!(errors.len() > 200, "{} poses compared", errors.len());
+    let (median, worst) = (errors[errors.len() / 2], errors[errors.len() - 1]);
+    eprintln!("against one session: median {median:.3} m, max {worst:.3} m");
+    assert!(median < 0.05 && worst < 0.15, "{median} {worst}");
+    // The grown map reads back with every node of the run.
+    let o = Command::new(env!("CARGO_BIN_EXE_cloi"))
+        .arg("show-map")
+        .arg(&grown)
+        .output()
+        .expect("cloi runs");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let summary: serde_json::Value = serde_json::from_slice(&o.stdout).expect("JSON");
+    assert_eq!(summary["nodes"], r["nodes"]);
+}

@@ -265,6 +265,7 @@ fn localization_on_the_a9_matches_x86(
         localize: Some(LocalizeIn {
             map: map.to_path_buf(),
             initial_pose: Some(cloi_core::Se2::IDENTITY),
+            extend: false,
         }),
     };
     let input = open_input(log, &InputOptions::default()).unwrap();

@@ -49,6 +49,9 @@ impl NodeMeta {
 pub(crate) struct FrameState {
     selector: KeyframeSelector,
     next_serial: u32,
+    /// Serial of the first frame node of this session (0 for a new map; a session extending
+    /// a saved map continues its serials).
+    session_first: u32,
 }
 
 impl FrameState {
@@ -56,7 +59,19 @@ impl FrameState {
         FrameState {
             selector: KeyframeSelector::new(keyframe),
             next_serial: 0,
+            session_first: 0,
         }
+    }
+
+    /// Starts a session whose first frame node takes `serial`.
+    pub(crate) fn start_session(&mut self, serial: u32) {
+        self.next_serial = serial;
+        self.session_first = serial;
+    }
+
+    /// Serial of the first frame node of this session.
+    pub(crate) fn session_first(&self) -> u32 {
+        self.session_first
     }
 
     /// Serial the next frame node takes.
@@ -76,6 +91,23 @@ impl FrameState {
     }
 }
 
+/// How a new frame node is tied to the graph.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Link {
+    /// By the front-end motion from the newest node (none for the first node of a map).
+    Odometry,
+    /// By a match with the saved map: the first node of a session that extends a map, seen
+    /// from the map's node `anchor` at `z` with `information`. A plain (not max-mixture)
+    /// edge: it is the only link of the session's odometry chain to the map's, which the
+    /// back-end's warm start needs to hold the session's nodes in place (module
+    /// `solver::gate`); the fix it comes from was confirmed by several keyframes.
+    Map {
+        anchor: u32,
+        z: Se2,
+        information: Info3,
+    },
+}
+
 /// Graph index of the node `serial` among `nodes` (sorted by serial).
 pub(crate) fn node_index(nodes: &[NodeMeta], serial: u32) -> Option<usize> {
     nodes.binary_search_by_key(&serial, |m| m.serial).ok()
@@ -93,48 +125,74 @@ impl Mapper<'_> {
         if !self.st.frames.selector.is_keyframe(pose) {
             return None;
         }
-        let serial = self.add_frame_node(stamp, pose, global)?;
+        let serial = self.add_frame_node(stamp, pose, global, Link::Odometry)?;
         self.st.frames.selector.accept(*pose);
         Some(serial)
     }
 
-    /// Adds a frame node at `global` with its odometry edge, then updates the maps; `None`
-    /// when a pool is full.
-    fn add_frame_node(&mut self, stamp: i64, pose: &Se2, global: &Se2) -> Option<u32> {
+    /// Adds a frame node at `global` tied by `link`, then updates the maps; `None` when a pool
+    /// is full.
+    pub(crate) fn add_frame_node(
+        &mut self,
+        stamp: i64,
+        pose: &Se2,
+        global: &Se2,
+        link: Link,
+    ) -> Option<u32> {
         let travel = self.st.frontend.travel();
         let n = self.graph.node_count();
-        let odometry_edge = if n > 0 {
-            let prev = self.meta.get(n - 1).copied()?;
-            let rel = prev.frontend.between(pose);
-            let cov = self.cfg.noise.over(&travel.since(&prev.travel));
-            Some(PoseEdge::new(
-                NodeId((n - 1) as u32),
+        let edge = match link {
+            Link::Odometry if n > 0 => {
+                let prev = self.meta.get(n - 1).copied()?;
+                let rel = prev.frontend.between(pose);
+                let cov = self.cfg.noise.over(&travel.since(&prev.travel));
+                Some(PoseEdge::new(
+                    NodeId((n - 1) as u32),
+                    NodeId(n as u32),
+                    rel,
+                    fixed_info(&cov),
+                    EdgeKind::Odometry,
+                ))
+            }
+            Link::Odometry => None,
+            Link::Map { z, information, .. } => Some(PoseEdge::new(
+                NodeId(0),
                 NodeId(n as u32),
-                rel,
-                fixed_info(&cov),
-                EdgeKind::Odometry,
-            ))
-        } else {
-            None
+                z,
+                information,
+                EdgeKind::Loop,
+            )),
         };
         if pool_nearly_full(&self.graph) {
             self.prune_pool();
         }
-        // Pruning renumbers the nodes: the edge joins the newest two as they are now.
+        // Pruning renumbers the nodes: the edge joins the newest node, or the map's node, as
+        // they are now.
         let n = self.graph.node_count();
-        let odometry_edge = odometry_edge.map(|e| PoseEdge {
-            from: NodeId((n - 1) as u32),
-            to: NodeId(n as u32),
-            ..e
-        });
+        let from = match link {
+            Link::Odometry => n.checked_sub(1),
+            Link::Map { anchor, .. } => self.node_of(anchor),
+        };
+        let edge = match (edge, from) {
+            (Some(e), Some(from)) => Some(PoseEdge {
+                from: NodeId(from as u32),
+                to: NodeId(n as u32),
+                ..e
+            }),
+            (Some(_), None) => {
+                self.st.stats.keyframes_dropped += 1;
+                return None;
+            }
+            (None, _) => None,
+        };
         if n >= self.graph.node_capacity()
-            || (odometry_edge.is_some() && self.graph.edge_count() >= self.graph.edge_capacity())
+            || (edge.is_some() && self.graph.edge_count() >= self.graph.edge_capacity())
         {
             self.st.stats.keyframes_dropped += 1;
             return None;
         }
         let id = self.graph.add_node(*global).ok()?;
-        if let Some(e) = odometry_edge {
+        if let Some(e) = edge {
             if self.graph.add_edge(e).is_err() {
                 // Cannot happen after the capacity check; undo the node to stay consistent.
                 self.graph.truncate_nodes(n);

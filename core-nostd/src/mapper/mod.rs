@@ -392,7 +392,7 @@ impl<'r> Mapper<'r> {
         let front =
             (self.st.frontend).track(self.scan, self.local, odometry, motion.as_ref(), &lidar);
         self.odometry.set_gyro_bias(self.st.frontend.gyro_bias());
-        if self.st.localize.is_some() {
+        if self.localizing() {
             return Ok(self.localize_frame(scan.stamp, &front, deadline_passed, probe));
         }
 
@@ -521,7 +521,7 @@ impl<'r> Mapper<'r> {
     /// to settle the map at the end of a run).
     pub fn request_optimization(&mut self) {
         // A map being localized in stays as it was saved.
-        if self.st.localize.is_none() {
+        if !self.localizing() {
             self.st.backend.loop_added();
         }
     }

@@ -171,7 +171,7 @@ impl Mapper<'_> {
             self.st.submaps.local_origin = Some(*pose);
             // A saved map's submaps lie in another session's front-end frame: localizing,
             // the local map refills from this session's scans only.
-            if self.cfg.local_from_submaps && self.st.localize.is_none() {
+            if self.cfg.local_from_submaps && !self.localizing() {
                 self.refill_local(pose);
             }
         }

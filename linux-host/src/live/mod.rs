@@ -286,6 +286,8 @@ pub fn run(args: &RunArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
         config: args.config.clone(),
         set: args.set.clone(),
         save: args.save.clone(),
+        load: None,
+        initial_pose: None,
         out: Some(args.out.clone()),
         deterministic: false,
         backend_delay: None,

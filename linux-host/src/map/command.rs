@@ -33,6 +33,17 @@ pub struct MapArgs {
     /// sessions; `cloi show-map` reads it back.
     #[arg(long, value_name = "FILE")]
     pub save: Option<PathBuf>,
+    /// Extend a map saved with `--save` (a new session of the same place): the run localizes
+    /// in it first (from `--initial-pose`, else by searching the whole map), then maps on
+    /// from the first fix, adding to it; `--save` writes the grown map. The profile defaults
+    /// to the one whose submap grid the map was made with.
+    #[arg(long, value_name = "FILE")]
+    pub load: Option<PathBuf>,
+    /// The robot's pose in the saved map at the first scan, `X,Y,THETA` (m, m, rad), for
+    /// `--load` and `cloi localize`; without it the whole map is searched (global
+    /// localization).
+    #[arg(long, value_name = "X,Y,THETA", value_parser = crate::io::parse_pose, allow_hyphen_values = true)]
+    pub initial_pose: Option<Se2>,
     /// Output directory (default `out/<input stem>`).
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -73,12 +84,8 @@ pub struct MapArgs {
 pub struct LocalizeArgs {
     /// The saved map (`.cloimap`, from `cloi map --save`).
     pub map: PathBuf,
-    /// The robot's pose in the map at the first scan, `X,Y,THETA` (m, m, rad); without it the
-    /// whole map is searched (global localization).
-    #[arg(long, value_name = "X,Y,THETA", value_parser = crate::io::parse_pose, allow_hyphen_values = true)]
-    pub initial_pose: Option<Se2>,
     /// The input and the options `cloi map` takes (the profile defaults to the one whose
-    /// submap grid the map was made with).
+    /// submap grid the map was made with; `--load` is `cloi map`'s).
     #[command(flatten)]
     pub run: MapArgs,
 }
@@ -89,9 +96,24 @@ pub struct LocalizeArgs {
 /// # Errors
 /// As [`run_command`], and a map file that cannot be read or fits no profile.
 pub fn run_localize(args: &LocalizeArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
-    let grid = crate::io::map_file::map_grid(&args.map)?;
-    let profile = match args.run.profile {
-        Some(p) => p,
+    if args.run.load.is_some() {
+        anyhow::bail!("cloi localize takes its map as its first argument, not --load");
+    }
+    let profile = profile_of_map(&args.map, args.run.profile)?;
+    let target = LocalizeIn {
+        map: args.map.clone(),
+        initial_pose: args.run.initial_pose,
+        extend: false,
+    };
+    execute(&args.run, profile, Some(target), quiet, out)
+}
+
+/// The profile a run in the saved map `map` uses: `given`, else the one whose submap grid the
+/// map was made with.
+fn profile_of_map(map: &std::path::Path, given: Option<Profile>) -> Result<Profile> {
+    let grid = crate::io::map_file::map_grid(map)?;
+    match given {
+        Some(p) => Ok(p),
         None => [Profile::Home, Profile::Office, Profile::Airport]
             .into_iter()
             .find(|p| p.core_config().grid == grid)
@@ -99,17 +121,12 @@ pub fn run_localize(args: &LocalizeArgs, quiet: bool, out: &mut dyn Write) -> Re
                 anyhow::anyhow!(
                     "{}: its submap grid ({} cells of {} m) is no profile's; give --profile and \
                      a --config with that grid",
-                    args.map.display(),
+                    map.display(),
                     grid.side,
                     grid.resolution
                 )
-            })?,
-    };
-    let target = LocalizeIn {
-        map: args.map.clone(),
-        initial_pose: args.initial_pose,
-    };
-    execute(&args.run, profile, Some(target), quiet, out)
+            }),
+    }
 }
 
 /// Runs `cloi map`: the JSON report to `out` with `--json`, warnings and a summary to
@@ -118,8 +135,20 @@ pub fn run_localize(args: &LocalizeArgs, quiet: bool, out: &mut dyn Write) -> Re
 /// # Errors
 /// Unreadable input or configuration, or outputs that cannot be written.
 pub fn run_command(args: &MapArgs, quiet: bool, out: &mut dyn Write) -> Result<()> {
-    let profile = args.profile.unwrap_or_else(|| default_profile(args));
-    execute(args, profile, None, quiet, out)
+    let Some(map) = &args.load else {
+        if args.initial_pose.is_some() {
+            anyhow::bail!("--initial-pose is the robot's pose in a saved map: give --load too");
+        }
+        let profile = args.profile.unwrap_or_else(|| default_profile(args));
+        return execute(args, profile, None, quiet, out);
+    };
+    let profile = profile_of_map(map, args.profile)?;
+    let target = LocalizeIn {
+        map: map.clone(),
+        initial_pose: args.initial_pose,
+        extend: true,
+    };
+    execute(args, profile, Some(target), quiet, out)
 }
 
 fn execute(
@@ -184,6 +213,16 @@ pub(crate) fn execute_input(
                 l["time_to_first_fix_s"],
                 l["lost"]
             );
+        }
+        if let Some(first) = result
+            .report
+            .extra
+            .get("session")
+            .map(|s| &s["first_serial"])
+        {
+            if let Some(first) = first.as_u64() {
+                eprintln!("extended the saved map from keyframe {first} on");
+            }
         }
         if let Some(path) = &settings.save_map {
             eprintln!("saved the map to {}", path.display());

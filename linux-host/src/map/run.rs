@@ -69,17 +69,21 @@ pub struct MapSettings {
     pub keep_gpe: bool,
     /// Save the final map (`.cloimap`) here.
     pub save_map: Option<PathBuf>,
-    /// Localize in a saved map instead of mapping (`cloi localize`).
+    /// Start in a saved map: localize in it (`cloi localize`) or extend it (`cloi map
+    /// --load`).
     pub localize: Option<LocalizeIn>,
 }
 
-/// What `cloi localize` localizes in.
+/// The saved map a run starts in.
 #[derive(Debug, Clone)]
 pub struct LocalizeIn {
     /// The saved map (`.cloimap`).
     pub map: PathBuf,
     /// The robot's pose in the map at the first scan, if known (else global localization).
     pub initial_pose: Option<Se2>,
+    /// Map on from the first fix (a new session of the saved map), instead of only
+    /// localizing.
+    pub extend: bool,
 }
 
 /// What `cloi map` does with a time stamp that is not after the previous one of its stream.
@@ -294,7 +298,11 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
         Some(target) => {
             let mut parts = res.parts();
             crate::io::map_file::read_map_into(&target.map, cfg.grid, &mut parts)?;
-            parts.localize(cfg, target.initial_pose)
+            if target.extend {
+                parts.extend(cfg, target.initial_pose)
+            } else {
+                parts.localize(cfg, target.initial_pose)
+            }
         }
     }
     .map_err(|e| anyhow!("profile {:?}: {e}", settings.profile))?;
@@ -336,8 +344,11 @@ struct Finished {
     images_refused: u64,
     first_stamp: Option<i64>,
     last_stamp: i64,
-    /// Localization-only mode: its counters and the scans localized.
+    /// Localization-only mode, or the start of a session extending a saved map: its counters
+    /// and the scans localized.
     localization: Option<(LocalizeCounters, u64)>,
+    /// A session extending a saved map: serial of its first frame node once it joined.
+    session_first: Option<u32>,
 }
 
 fn drive(
@@ -574,6 +585,7 @@ fn drive(
         first_stamp: driver.first_stamp,
         last_stamp: driver.last_stamp,
         localization: mapper.localize_counters().map(|c| (c, driver.localized)),
+        session_first: mapper.session_first_serial(),
     })
 }
 
@@ -609,8 +621,11 @@ fn finish(
         .map(|&(serial, global, frontend)| (serial, (global, frontend)))
         .collect();
     let place = |r: &ScanRecord| -> Option<Se2> {
-        // Localizing, the map does not move: the real-time pose is the final one.
-        if f.localization.is_some() {
+        // Localizing, the map does not move: the real-time pose is the final one. So for the
+        // scans of a session extending a map before it joined the map (no node of this
+        // session to hang off yet).
+        let joined = f.session_first.is_some_and(|first| r.reference >= first);
+        if f.localization.is_some() && !joined {
             return Some(r.gpe);
         }
         if let Some((p, _)) = poses.get(&r.reference) {
@@ -769,12 +784,32 @@ fn finish(
             localization_json(&c, localized, accepted, f.first_stamp),
         );
     }
+    let mut warnings = Vec::new();
+    if let Some(target) = settings.localize.as_ref().filter(|t| t.extend) {
+        report.extra.insert(
+            "session".into(),
+            json!({
+                "extends": target.map.display().to_string(),
+                "joined": f.session_first.is_some(),
+                "first_serial": f.session_first,
+                "note": "a session extending a saved map: localized in it until the first fix, \
+                         mapping from there; first_serial is the serial of its first keyframe",
+            }),
+        );
+        if f.session_first.is_none() {
+            warnings.push(format!(
+                "the run never found itself in {}: nothing was added to the map (is it the same \
+                 place? try --initial-pose)",
+                target.map.display()
+            ));
+        }
+    }
     if input_stats.images > 0 {
         report
             .extra
             .insert("cameras".into(), cameras_json(&f.cameras, f.images_refused));
     }
-    let mut warnings = sync_warnings(&sync);
+    warnings.extend(sync_warnings(&sync));
     warnings.extend(camera_warnings(&f.cameras, f.images_refused));
     let us = &f.scan_us;
     report.extra.insert(

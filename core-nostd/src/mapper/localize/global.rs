@@ -124,7 +124,7 @@ impl Mapper<'_> {
     /// around it and, when it lies where the prior allows, kept among the sweep's places with
     /// its score in the whole map.
     fn add_global_candidate(&mut self, sweep: &mut Sweep, f: &FarMatch) {
-        let Ok(world) = self.match_map(MatchSource::Far, &f.pose) else {
+        let Ok((world, _)) = self.match_map(MatchSource::Far, &f.pose) else {
             return;
         };
         let outside = sweep.region.is_some_and(|(c, xy, theta)| {

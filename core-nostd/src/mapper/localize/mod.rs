@@ -39,6 +39,7 @@
 //! as not localized.
 
 mod global;
+mod join;
 
 use super::far::accept::SUPPORT;
 use super::loops::MatchSource;
@@ -54,7 +55,7 @@ use crate::frontend::odometry::OdometryFusion;
 use crate::frontend::scan::{ScanPoint, MAX_POINTS};
 use crate::frontend::{align, IcpConfig, KdTree};
 use crate::frontend::{PointMap, Submap};
-use crate::geom::Se2;
+use crate::geom::{Info3, Se2};
 use crate::gpe::{GpeFrame, NodeTie};
 
 /// Why a match with the map failed.
@@ -132,6 +133,11 @@ pub(crate) struct LocalizeState {
     /// submaps.
     reference: Option<MapReference>,
     counters: LocalizeCounters,
+    /// Multi-session mapping: the first fix joins this session to the map, and from there
+    /// on the mapper maps (module `join`).
+    then_map: bool,
+    /// The session has joined the map: the mapper maps, this state keeps only its counters.
+    joined: bool,
 }
 
 /// The map points a match was made with, kept for the next: a keyframe near the last one sees
@@ -147,8 +153,10 @@ struct MapReference {
 
 impl LocalizeState {
     /// Lost, or starting at `initial` when the caller knows where the robot is.
-    pub(crate) const fn new(initial: Option<Se2>) -> Self {
+    pub(crate) const fn new(initial: Option<Se2>, then_map: bool) -> Self {
         LocalizeState {
+            then_map,
+            joined: false,
             initial,
             fix: None,
             tracking: false,
@@ -191,9 +199,20 @@ impl<'r> MapperParts<'r> {
     /// # Errors
     /// As [`MapperParts::start`].
     pub fn localize(
+        self,
+        config: MapperConfig,
+        initial: Option<Se2>,
+    ) -> Result<Mapper<'r>, MapperError> {
+        self.start_in_map(config, initial, false)
+    }
+
+    /// Starts a mapper on the map these parts hold, localizing until the first fix, mapping
+    /// from there (see [`MapperParts::extend`] and [`MapperParts::localize`]).
+    fn start_in_map(
         mut self,
         config: MapperConfig,
         initial: Option<Se2>,
+        then_map: bool,
     ) -> Result<Mapper<'r>, MapperError> {
         if self.pyramid.len() != PYRAMID_LEVELS * config.grid.cells() {
             return Err(MapperError::Storage(
@@ -209,16 +228,32 @@ impl<'r> MapperParts<'r> {
         self.scan.clear();
         *self.odometry = OdometryFusion::new(config.odometry);
         *self.state = MapperState::new(config.keyframe);
-        self.state.localize = Some(LocalizeState::new(initial));
+        self.state.localize = Some(LocalizeState::new(initial, then_map));
+        if then_map {
+            // The session's frame nodes continue the map's serials (the graph keeps its
+            // nodes in serial order).
+            let newest = self.graph.node_count().checked_sub(1);
+            let next = newest
+                .and_then(|i| self.meta.get(i))
+                .map_or(0, |m| m.serial + 1);
+            self.state.frames.start_session(next);
+        }
         self.solver.invalidate();
         Mapper::new(config, self)
     }
 }
 
 impl Mapper<'_> {
-    /// Counters of the localization-only mode; `None` when mapping.
+    /// Counters of the localization-only mode, or of the localization a session extending a
+    /// saved map started with; `None` for a new map.
     pub fn localize_counters(&self) -> Option<LocalizeCounters> {
         self.st.localize.as_ref().map(|l| l.counters)
+    }
+
+    /// Whether the mapper is localizing in a saved map (adding nothing to it): in
+    /// localization-only mode, or in a session extending a map before its first fix.
+    pub(crate) fn localizing(&self) -> bool {
+        self.st.localize.as_ref().is_some_and(|l| !l.joined)
     }
 
     /// The per-frame step in localization-only mode, after the front-end: the GPE tied to the
@@ -260,10 +295,13 @@ impl Mapper<'_> {
         if keyframe {
             self.update_local_map(&front.pose);
             probe.enter(Section::LoopSearch);
-            if let Some(fix) = self.relocalize(stamp, front) {
+            if let Some((fix, information)) = self.relocalize(stamp, front) {
                 // Tracking (re)starts here: the pose moves to the map once, then follows it.
                 self.st.gpe.restart_at(fix);
                 global.pose = fix;
+                if self.st.localize.as_ref().is_some_and(|l| l.then_map) {
+                    self.join_map(stamp, &front.pose, &fix, &information);
+                }
             }
         }
         let localized = self.st.localize.as_ref().is_some_and(|l| l.tracking);
@@ -280,8 +318,9 @@ impl Mapper<'_> {
     }
 
     /// Matches the keyframe just taken in the saved map: tracking or verifying against the
-    /// fix, else a global search. The fix's pose when tracking starts at this keyframe.
-    fn relocalize(&mut self, stamp: i64, front: &FrontendStep) -> Option<Se2> {
+    /// fix, else a global search. The fix's pose, and the information of its match (world
+    /// axes), when tracking starts at this keyframe.
+    fn relocalize(&mut self, stamp: i64, front: &FrontendStep) -> Option<(Se2, Info3)> {
         let travel = self.st.frontend.travel();
         let l = self.st.localize.as_mut()?;
         l.counters.keyframes += 1;
@@ -305,7 +344,7 @@ impl Mapper<'_> {
         // motion model allows (a wheel slip, a gyro drifting through a LiDAR outage): it is
         // not believed at once, but proposed like a global match, for the next keyframes to
         // confirm.
-        if let Ok(p) = matched {
+        if let Ok((p, _)) = matched {
             let d = predicted.between(&p);
             if libm::hypot(d.x, d.y) > window.0 || libm::fabs(d.theta) > window.1 {
                 debug!(
@@ -329,8 +368,8 @@ impl Mapper<'_> {
                 return None;
             }
         }
-        let estimate = match matched {
-            Ok(estimate) => estimate,
+        let (estimate, information) = match matched {
+            Ok(m) => m,
             Err(miss) => {
                 // A scan that cannot tell is no evidence against the fix: only the growing
                 // uncertainty then ends tracking.
@@ -372,21 +411,22 @@ impl Mapper<'_> {
             return None;
         }
         l.start_tracking(stamp);
-        Some(estimate)
+        Some((estimate, information))
     }
 
     /// ICP of the scan of `source` (robot frame) against the saved map around the world pose
     /// `seed`: the occupied cells of the [`MAP_SUBMAPS`] submaps whose anchors are nearest to
     /// it, as world points (as many as the reference storage holds). A scan sees far beyond
     /// one submap (a home's is 4 m across, its LiDAR reaches 10 m), so it is matched with all
-    /// of the map it can see. The world pose when the match is good; else why not.
+    /// of the map it can see. The world pose and its information (over steps along the world
+    /// axes) when the match is good; else why not.
     ///
     /// A good match has a small residual over enough points, and most of the points the map
     /// can judge (those on cells it observed) lie within two cells of its walls, as the loop
     /// search's fitness asks. A scan that sees more than the map holds (a part of the building
     /// not mapped, a long-range LiDAR beyond the submaps gathered) is not held against it; a
     /// wrong place, where the map saw free space, is.
-    fn match_map(&mut self, source: MatchSource, seed: &Se2) -> Result<Se2, Miss> {
+    fn match_map(&mut self, source: MatchSource, seed: &Se2) -> Result<(Se2, Info3), Miss> {
         let reach =
             self.cfg.max_range as f64 + self.cfg.grid.side as f64 * self.cfg.grid.resolution as f64;
         // (distance to the anchor, slot, anchor pose), nearest first.
@@ -456,7 +496,7 @@ impl Mapper<'_> {
         let fitness = close as f32 / judged.max(1) as f32;
         match r {
             r if r.inliers < icp.min_points || judged < icp.min_points => Err(Miss::Uninformative),
-            r if fitness >= lc.min_fitness && r.rms <= lc.max_rms => Ok(r.pose),
+            r if fitness >= lc.min_fitness && r.rms <= lc.max_rms => Ok((r.pose, r.information)),
             r => {
                 debug!(
                     "map match refused: fitness {} rms {} ({} points, {} judged, {} reference)",
