@@ -49,6 +49,7 @@ pub(crate) fn wall_with_doors(
 
 pub(crate) fn plain_wall(points: Vec<P2>, material: Material) -> WallSpec {
     WallSpec {
+        name: None,
         points,
         closed: false,
         material,
@@ -58,8 +59,10 @@ pub(crate) fn plain_wall(points: Vec<P2>, material: Material) -> WallSpec {
 
 pub(crate) fn boxed(min: P2, max: P2, material: Material, height: f64) -> Spanned<BoxSpec> {
     sp(BoxSpec {
+        name: None,
         min,
         max,
+        angle: 0.0,
         material,
         height: Some(height),
     })
@@ -145,6 +148,7 @@ pub fn builtin(name: &str, duration: f64) -> Option<WorldFile> {
 /// off a corridor; furniture against the walls, a carpet that makes the wheels slip.
 pub fn home() -> WorldFile {
     let mut walls = vec![sp(WallSpec {
+        name: None,
         points: vec![[0.0, 0.0], [22.0, 0.0], [22.0, 16.0], [0.0, 16.0]],
         closed: true,
         material: Material::Wall,
@@ -281,6 +285,7 @@ pub fn home() -> WorldFile {
         }),
         faults: Vec::new(),
         odometry: OdometrySpec::default(),
+        changes: Vec::new(),
     }
 }
 
@@ -289,6 +294,7 @@ pub fn home() -> WorldFile {
 /// repetition is the point), an open area and a glass meeting room.
 pub fn office() -> WorldFile {
     let mut walls = vec![sp(WallSpec {
+        name: None,
         points: vec![[0.0, 0.0], [40.0, 0.0], [40.0, 25.0], [0.0, 25.0]],
         closed: true,
         material: Material::Wall,
@@ -300,6 +306,7 @@ pub fn office() -> WorldFile {
             let x0 = 2.0 + 4.0 * f64::from(c);
             let part = |pts: Vec<P2>| {
                 sp(WallSpec {
+                    name: None,
                     points: pts,
                     closed: false,
                     material: Material::Furniture,
@@ -314,6 +321,7 @@ pub fn office() -> WorldFile {
     }
     // Glass meeting room with a door on its west side.
     walls.push(sp(WallSpec {
+        name: None,
         points: vec![
             [30.0, 17.0],
             [30.0, 15.0],
@@ -385,6 +393,7 @@ pub fn office() -> WorldFile {
         }),
         faults: Vec::new(),
         odometry: OdometrySpec::default(),
+        changes: Vec::new(),
     }
 }
 
@@ -412,6 +421,7 @@ pub fn airport() -> WorldFile {
     // Hand rails of the moving walkway.
     for y in [37.9, 40.1] {
         walls.push(sp(WallSpec {
+            name: None,
             points: vec![[20.0, y], [100.0, y]],
             closed: false,
             material: Material::Furniture,
@@ -511,6 +521,7 @@ pub fn airport() -> WorldFile {
         }),
         faults: Vec::new(),
         odometry: OdometrySpec::default(),
+        changes: Vec::new(),
     }
 }
 
