@@ -371,4 +371,26 @@ box = { name = "boxes", min = [5, 0.8], max = [6, 1.4] }
             );
         }
     }
+
+    #[test]
+    fn a_session_of_the_home_is_simulated_and_recorded_in_the_sidecar() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let side = |session: u32| {
+            let out = dir.path().join(format!("s{session}.mcap"));
+            let mut a = args(&out, 1);
+            a.session = session;
+            a.duration = 0.5;
+            let mut text = Vec::new();
+            run(&a, &mut text).expect("sim runs");
+            let side = std::fs::read_to_string(beside(&out, "sim.json")).expect("sidecar");
+            let json: serde_json::Value = serde_json::from_str(&side).expect("json");
+            (String::from_utf8_lossy(&text).into_owned(), json)
+        };
+        let (text, json) = side(3);
+        assert!(text.contains("session 3: 9 change(s) applied\n"), "{text}");
+        assert_eq!(json["session"], 3);
+        let (text, json) = side(0);
+        assert!(!text.contains("session"), "{text}");
+        assert!(json.get("session").is_none());
+    }
 }
