@@ -5,9 +5,9 @@
 use toml::Spanned;
 
 use crate::world::{
-    BoxSpec, CeilingSpec, FaultKind, FaultSpec, FeatureKind, FeatureSpec, LegSpec, Material,
-    OdometrySpec, PosterSpec, RegionKind, RegionSpec, RobotKind, RouteSpec, WallSpec, WorldFile,
-    P2,
+    BoxSpec, CeilingSpec, ChangeSpec, FaultKind, FaultSpec, FeatureKind, FeatureSpec, ItemRef,
+    LegSpec, Material, OdometrySpec, PosterSpec, RegionKind, RegionSpec, RobotKind, RouteSpec,
+    WallSpec, WorldFile, P2,
 };
 
 /// Names of the built-in worlds.
@@ -49,6 +49,7 @@ pub(crate) fn wall_with_doors(
 
 pub(crate) fn plain_wall(points: Vec<P2>, material: Material) -> WallSpec {
     WallSpec {
+        name: None,
         points,
         closed: false,
         material,
@@ -58,11 +59,20 @@ pub(crate) fn plain_wall(points: Vec<P2>, material: Material) -> WallSpec {
 
 pub(crate) fn boxed(min: P2, max: P2, material: Material, height: f64) -> Spanned<BoxSpec> {
     sp(BoxSpec {
+        name: None,
         min,
         max,
+        angle: 0.0,
         material,
         height: Some(height),
     })
+}
+
+/// A named piece of furniture: changes between sessions address it by name.
+fn furniture(name: &str, min: P2, max: P2, height: f64) -> Spanned<BoxSpec> {
+    let mut b = boxed(min, max, Material::Furniture, height);
+    b.get_mut().name = Some(name.into());
+    b
 }
 
 pub(crate) fn feature(kind: FeatureKind, c: P2, size: P2) -> Spanned<FeatureSpec> {
@@ -145,6 +155,7 @@ pub fn builtin(name: &str, duration: f64) -> Option<WorldFile> {
 /// off a corridor; furniture against the walls, a carpet that makes the wheels slip.
 pub fn home() -> WorldFile {
     let mut walls = vec![sp(WallSpec {
+        name: None,
         points: vec![[0.0, 0.0], [22.0, 0.0], [22.0, 16.0], [0.0, 16.0]],
         closed: true,
         material: Material::Wall,
@@ -168,35 +179,35 @@ pub fn home() -> WorldFile {
     for x in [7.0, 14.0] {
         walls.push(sp(plain_wall(vec![[x, 9.0], [x, 16.0]], Material::Wall)));
     }
-    let f = Material::Furniture;
     let mut boxes = vec![
         // Living room: sofa, TV cabinet, armchair, side table legs.
-        boxed([0.3, 0.3], [3.5, 1.2], f, 0.45),
-        boxed([9.4, 1.5], [9.8, 5.0], f, 0.5),
-        boxed([0.3, 4.5], [1.2, 5.5], f, 0.45),
+        furniture("sofa", [0.3, 0.3], [3.5, 1.2], 0.45),
+        furniture("tv-cabinet", [9.4, 1.5], [9.8, 5.0], 0.5),
+        furniture("armchair", [0.3, 4.5], [1.2, 5.5], 0.45),
         // Kitchen: counter, fridge.
-        boxed([10.05, 0.05], [15.95, 0.65], f, 0.9),
-        boxed([15.2, 5.8], [15.95, 6.95], f, 1.8),
+        furniture("kitchen-counter", [10.05, 0.05], [15.95, 0.65], 0.9),
+        furniture("fridge", [15.2, 5.8], [15.95, 6.95], 1.8),
         // Bathroom: tub, toilet, sink cabinet.
-        boxed([16.05, 0.05], [18.95, 0.8], f, 0.55),
-        boxed([18.3, 3.0], [18.95, 3.6], f, 0.4),
-        boxed([16.05, 4.0], [16.6, 5.0], f, 0.85),
+        furniture("bathtub", [16.05, 0.05], [18.95, 0.8], 0.55),
+        furniture("toilet", [18.3, 3.0], [18.95, 3.6], 0.4),
+        furniture("sink-cabinet", [16.05, 4.0], [16.6, 5.0], 0.85),
         // Utility: washing machine, shelves.
-        boxed([21.3, 0.05], [21.95, 0.7], f, 0.85),
-        boxed([19.05, 0.05], [19.5, 3.0], f, 1.8),
+        furniture("washing-machine", [21.3, 0.05], [21.95, 0.7], 0.85),
+        furniture("utility-shelves", [19.05, 0.05], [19.5, 3.0], 1.8),
         // Bedroom 3: bed, wardrobe, night stands.
-        boxed([18.0, 13.0], [20.0, 15.95], f, 0.5),
-        boxed([14.05, 14.5], [16.0, 15.95], f, 2.0),
-        boxed([17.4, 15.4], [17.9, 15.95], f, 0.5),
-        boxed([20.1, 15.4], [20.6, 15.95], f, 0.5),
+        furniture("bed-3", [18.0, 13.0], [20.0, 15.95], 0.5),
+        furniture("wardrobe-3", [14.05, 14.5], [16.0, 15.95], 2.0),
+        furniture("nightstand-3-west", [17.4, 15.4], [17.9, 15.95], 0.5),
+        furniture("nightstand-3-east", [20.1, 15.4], [20.6, 15.95], 0.5),
         // Bedroom 2: bed, desk.
-        boxed([8.0, 12.5], [10.0, 15.95], f, 0.5),
-        boxed([12.5, 14.8], [13.95, 15.95], f, 0.75),
+        furniture("bed-2", [8.0, 12.5], [10.0, 15.95], 0.5),
+        furniture("desk-2", [12.5, 14.8], [13.95, 15.95], 0.75),
         // Bedroom 1: bed, wardrobe.
-        boxed([1.0, 12.5], [3.0, 15.95], f, 0.5),
-        boxed([0.05, 9.05], [0.7, 11.5], f, 2.0),
+        furniture("bed-1", [1.0, 12.5], [3.0, 15.95], 0.5),
+        furniture("wardrobe-1", [0.05, 9.05], [0.7, 11.5], 2.0),
     ];
     // Side table: four legs.
+    let f = Material::Furniture;
     for (x, y) in [(0.4, 2.2), (1.1, 2.2), (0.4, 3.5), (1.1, 3.5)] {
         boxes.push(boxed([x, y], [x + 0.05, y + 0.05], f, 0.6));
     }
@@ -281,7 +292,61 @@ pub fn home() -> WorldFile {
         }),
         faults: Vec::new(),
         odometry: OdometrySpec::default(),
+        changes: home_changes(),
     }
+}
+
+/// Three sessions of everyday change in the home, none of them in the robot's way: session 1
+/// turns the armchair and slides a door across the west half of the living-room opening;
+/// session 2 shifts the sofa and leaves a laundry basket in bedroom 1 and a moving box in
+/// the corridor; session 3 opens the sliding door again, clears the moving box, moves the
+/// desk and drops a toy box in bedroom 2.
+fn home_changes() -> Vec<Spanned<ChangeSpec>> {
+    let name = |n: &str| Some(ItemRef::Name(n.into()));
+    let move_box = |session: u32, n: &str, dx: f64, dy: f64, angle: f64| {
+        sp(ChangeSpec::Move {
+            session,
+            box_ref: name(n),
+            wall: None,
+            dx,
+            dy,
+            angle,
+        })
+    };
+    let add_box = |session: u32, n: &str, min: P2, max: P2, height: f64| {
+        sp(ChangeSpec::Add {
+            session,
+            box_spec: Some(furniture(n, min, max, height).into_inner()),
+            wall: None,
+        })
+    };
+    let sliding_door = WallSpec {
+        name: Some("sliding-door".into()),
+        ..plain_wall(vec![[3.0, 7.0], [4.5, 7.0]], Material::Wall)
+    };
+    vec![
+        move_box(1, "armchair", 0.0, 0.8, 0.3),
+        sp(ChangeSpec::Add {
+            session: 1,
+            box_spec: None,
+            wall: Some(sliding_door),
+        }),
+        move_box(2, "sofa", 1.0, 0.0, 0.0),
+        add_box(2, "laundry-basket", [4.2, 13.0], [4.7, 13.5], 0.5),
+        add_box(2, "moving-box", [14.6, 8.35], [15.2, 8.85], 0.4),
+        sp(ChangeSpec::Remove {
+            session: 3,
+            box_ref: None,
+            wall: name("sliding-door"),
+        }),
+        sp(ChangeSpec::Remove {
+            session: 3,
+            box_ref: name("moving-box"),
+            wall: None,
+        }),
+        move_box(3, "desk-2", -0.6, 0.0, 0.0),
+        add_box(3, "toy-box", [10.4, 13.2], [11.0, 13.7], 0.3),
+    ]
 }
 
 /// A 40 m x 25 m office floor: three rows of six identical cubicle blocks (1.4 m partitions),
@@ -289,6 +354,7 @@ pub fn home() -> WorldFile {
 /// repetition is the point), an open area and a glass meeting room.
 pub fn office() -> WorldFile {
     let mut walls = vec![sp(WallSpec {
+        name: None,
         points: vec![[0.0, 0.0], [40.0, 0.0], [40.0, 25.0], [0.0, 25.0]],
         closed: true,
         material: Material::Wall,
@@ -300,6 +366,7 @@ pub fn office() -> WorldFile {
             let x0 = 2.0 + 4.0 * f64::from(c);
             let part = |pts: Vec<P2>| {
                 sp(WallSpec {
+                    name: None,
                     points: pts,
                     closed: false,
                     material: Material::Furniture,
@@ -314,6 +381,7 @@ pub fn office() -> WorldFile {
     }
     // Glass meeting room with a door on its west side.
     walls.push(sp(WallSpec {
+        name: None,
         points: vec![
             [30.0, 17.0],
             [30.0, 15.0],
@@ -385,6 +453,7 @@ pub fn office() -> WorldFile {
         }),
         faults: Vec::new(),
         odometry: OdometrySpec::default(),
+        changes: Vec::new(),
     }
 }
 
@@ -412,6 +481,7 @@ pub fn airport() -> WorldFile {
     // Hand rails of the moving walkway.
     for y in [37.9, 40.1] {
         walls.push(sp(WallSpec {
+            name: None,
             points: vec![[20.0, y], [100.0, y]],
             closed: false,
             material: Material::Furniture,
@@ -511,6 +581,7 @@ pub fn airport() -> WorldFile {
         }),
         faults: Vec::new(),
         odometry: OdometrySpec::default(),
+        changes: Vec::new(),
     }
 }
 
@@ -545,6 +616,136 @@ mod tests {
                     pair[1]
                 );
             }
+        }
+    }
+
+    fn fnv(h: &mut u64, bytes: &[u8]) {
+        for &b in bytes {
+            *h ^= u64::from(b);
+            *h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+
+    fn segment_hash(world: &World) -> u64 {
+        let mut h = 0xcbf2_9ce4_8422_2325;
+        for s in &world.segments {
+            for v in [s.a[0], s.a[1], s.b[0], s.b[1], s.height] {
+                fnv(&mut h, &v.to_bits().to_le_bytes());
+            }
+            fnv(&mut h, &[s.material as u8]);
+            fnv(&mut h, &s.texture.to_le_bytes());
+        }
+        h
+    }
+
+    /// Pins session 0 to the worlds as they were before worlds could change between sessions:
+    /// recordings and results made earlier stay reproducible. Update a figure only when a
+    /// world is changed on purpose.
+    #[test]
+    fn session_zero_of_the_builtin_worlds_is_unchanged() {
+        for (name, segments, hash) in [
+            ("home", 106, 0xcf69_b31f_068e_4a6c_u64),
+            ("office", 93, 0xd7be_6e64_5c1b_8ff3),
+            ("airport", 76, 0xfd83_1475_76e4_1080),
+        ] {
+            let file = builtin(name, 100.0).expect("exists");
+            for world in [
+                World::from_file(&file),
+                World::at_session(&file, 0).expect("session 0"),
+            ] {
+                assert_eq!(world.segments.len(), segments, "{name}");
+                assert_eq!(segment_hash(&world), hash, "{name}");
+            }
+        }
+        // Worlds without changes dump to the same bytes as before.
+        for (name, hash) in [
+            ("office", 0x8212_a80a_d845_c818_u64),
+            ("airport", 0x337f_74fb_eee3_5d79),
+        ] {
+            let text = builtin(name, 100.0)
+                .expect("exists")
+                .to_toml()
+                .expect("toml");
+            let mut h = 0xcbf2_9ce4_8422_2325;
+            fnv(&mut h, text.as_bytes());
+            assert_eq!(h, hash, "{name}:\n{text}");
+        }
+    }
+
+    fn sorted_ends(world: &World) -> Vec<[u64; 4]> {
+        let mut v: Vec<[u64; 4]> = world
+            .segments
+            .iter()
+            .map(|s| [s.a[0], s.a[1], s.b[0], s.b[1]].map(f64::to_bits))
+            .collect();
+        v.sort_unstable();
+        v
+    }
+
+    /// How many segments of `a` are not in `b` (as a multiset).
+    fn missing(a: &[[u64; 4]], b: &[[u64; 4]]) -> usize {
+        let mut b = b.to_vec();
+        a.iter()
+            .filter(|s| match b.iter().position(|t| t == *s) {
+                Some(i) => {
+                    b.swap_remove(i);
+                    false
+                }
+                None => true,
+            })
+            .count()
+    }
+
+    #[test]
+    fn home_sessions_change_the_expected_segments_and_keep_the_route_clear() {
+        let file = builtin("home", 100.0).expect("exists");
+        // Parsing the dump validates every change against the world it meets.
+        let text = file.to_toml().expect("serialisable");
+        let back = WorldFile::parse(&text, "home").expect("round trip");
+        assert_eq!(back.last_session(), 3);
+        let worlds: Vec<World> = (0..=4)
+            .map(|n| World::at_session(&back, n).expect("applies"))
+            .collect();
+        for (n, w) in worlds.iter().enumerate() {
+            let direct = World::at_session(&file, n as u32).expect("applies");
+            assert_eq!(direct.segments, w.segments, "session {n}");
+        }
+        // (segments gone, segments new) from one session to the next: session 1 turns the
+        // armchair and closes the sliding door; session 2 moves the sofa and adds two boxes;
+        // session 3 opens the door, takes one box away, moves the desk and adds a toy box;
+        // session 4 is session 3 again.
+        let expected = [(4, 5), (4, 12), (9, 8), (0, 0)];
+        for (n, (gone, new)) in expected.iter().enumerate() {
+            let (a, b) = (sorted_ends(&worlds[n]), sorted_ends(&worlds[n + 1]));
+            assert_eq!(
+                (missing(&a, &b), missing(&b, &a)),
+                (*gone, *new),
+                "session {} -> {}",
+                n,
+                n + 1
+            );
+        }
+        let door = |w: &World| {
+            w.segments
+                .iter()
+                .any(|s| s.a == [3.0, 7.0] && s.b == [4.5, 7.0])
+        };
+        let doors: Vec<bool> = worlds.iter().map(door).collect();
+        assert_eq!(doors, [false, true, true, false, false]);
+        for (n, world) in worlds.iter().enumerate() {
+            for pair in route_points(&world.route).windows(2) {
+                assert!(
+                    world.path_is_clear(pair[0], pair[1], 0.15),
+                    "home session {n}: drive {:?} -> {:?} hits {:?}",
+                    pair[0],
+                    pair[1],
+                    world
+                        .path_blocker(pair[0], pair[1], 0.15)
+                        .and_then(|s| back.describe_segment(n as u32, s))
+                );
+            }
+            crate::command::session_world(&back, n as u32, &mut Vec::new())
+                .expect("the route stays clear");
         }
     }
 }

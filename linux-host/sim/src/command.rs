@@ -24,6 +24,12 @@ pub struct SimArgs {
     /// docs/sim/world-format.md).
     #[arg(long, default_value = "home")]
     pub world: String,
+    /// Mapping session N: the world with the changes that its `[[changes]]` tables list for
+    /// sessions 1 to N applied (furniture moved, doors opened or closed, clutter). 0 is the
+    /// world as written; a session past the last one shows the last one's world. The route
+    /// must stay clear. `--dump-world` writes the world as written, changes included.
+    #[arg(long, default_value_t = 0)]
+    pub session: u32,
     /// Simulated seconds.
     #[arg(long, default_value_t = 60.0)]
     pub duration: f64,
@@ -108,6 +114,51 @@ pub fn load_world(spec: &str, duration: f64) -> Result<WorldFile> {
     Ok(WorldFile::load(path)?)
 }
 
+/// The world of mapping session `session`. A session's changes must leave the route
+/// passable: a drive that the world as written leaves clear but the session blocks is an
+/// error naming the item in the way.
+///
+/// # Errors
+/// A change that does not apply, or one that blocks the route.
+pub fn session_world(file: &WorldFile, session: u32, out: &mut dyn Write) -> Result<World> {
+    if session == 0 {
+        return Ok(World::from_file(file));
+    }
+    let world = World::at_session(file, session)?;
+    let written = World::from_file(file);
+    let c = generate::clearance(file.robot);
+    for pair in path::route_points(&world.route).windows(2) {
+        let (a, b) = (pair[0], pair[1]);
+        if let Some(seg) = world.path_blocker(a, b, c) {
+            if written.path_is_clear(a, b, c) {
+                let what = file
+                    .describe_segment(session, seg)
+                    .unwrap_or_else(|| format!("segment {seg}"));
+                bail!(
+                    "{}: session {session} blocks the route: the drive {a:?} -> {b:?} passes \
+                     closer than {c} m to {what}",
+                    file.name
+                );
+            }
+        }
+    }
+    let applied = file
+        .changes
+        .iter()
+        .filter(|ch| ch.get_ref().session() <= session)
+        .count();
+    let last = file.last_session();
+    let note = if last == 0 {
+        " (the world has no changes)".to_string()
+    } else if session > last {
+        format!(" (the world of session {last}, the last with changes)")
+    } else {
+        String::new()
+    };
+    writeln!(out, "session {session}: {applied} change(s) applied{note}")?;
+    Ok(world)
+}
+
 /// The path beside `out` with its extension replaced by `ext` (`run.mcap` -> `run.gt.tum`).
 pub fn beside(out: &Path, ext: &str) -> PathBuf {
     out.with_extension(ext)
@@ -159,7 +210,8 @@ pub fn run(args: &SimArgs, out: &mut dyn Write) -> Result<()> {
         faults: !args.no_faults,
         lidar: None,
     };
-    let sim = Simulation::new(World::from_file(&file), cfg);
+    let world = session_world(&file, args.session, out)?;
+    let sim = Simulation::new(world, cfg);
     if let Some(path) = &args.preview {
         let at = args.preview_at.unwrap_or(duration * 0.5);
         preview::write(&sim, path, args.preview_size.clamp(64, 4096), at)?;
@@ -218,6 +270,7 @@ mod tests {
     fn args(out: &Path, seed: u64) -> SimArgs {
         SimArgs {
             world: "home".into(),
+            session: 0,
             duration: 2.0,
             laps: None,
             seed,
@@ -272,5 +325,72 @@ mod tests {
             "{topics:?}"
         );
         assert!(topics.contains_key("/odom") && topics.contains_key("/imu"));
+    }
+
+    #[test]
+    fn a_session_that_blocks_the_route_is_an_error_naming_the_item() {
+        let text = r#"
+name = "flat"
+ceiling_height = 2.5
+
+[[wall]]
+points = [[0, 0], [10, 0], [10, 10], [0, 10]]
+closed = true
+
+[route]
+start = [1, 1]
+legs = [{ type = "waypoints", points = [[9, 1], [9, 9]] }]
+
+[[changes]]
+session = 1
+kind = "add"
+box = { name = "toys", min = [6, 2], max = [7, 2.5] }
+
+[[changes]]
+session = 2
+kind = "add"
+box = { name = "boxes", min = [5, 0.8], max = [6, 1.4] }
+"#;
+        let file = WorldFile::parse(text, "flat.toml").expect("valid");
+        let mut out = Vec::new();
+        let world = session_world(&file, 1, &mut out).expect("session 1 leaves the route free");
+        assert_eq!(world.session, 1);
+        assert_eq!(
+            String::from_utf8_lossy(&out),
+            "session 1: 1 change(s) applied\n"
+        );
+        for session in [2, 7] {
+            let err = session_world(&file, session, &mut Vec::new())
+                .expect_err("blocked")
+                .to_string();
+            assert!(
+                err.contains(&format!("session {session} blocks the route"))
+                    && err.contains("[1.0, 1.0] -> [9.0, 1.0]")
+                    && err.contains("added box \"boxes\""),
+                "{err}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_session_of_the_home_is_simulated_and_recorded_in_the_sidecar() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let side = |session: u32| {
+            let out = dir.path().join(format!("s{session}.mcap"));
+            let mut a = args(&out, 1);
+            a.session = session;
+            a.duration = 0.5;
+            let mut text = Vec::new();
+            run(&a, &mut text).expect("sim runs");
+            let side = std::fs::read_to_string(beside(&out, "sim.json")).expect("sidecar");
+            let json: serde_json::Value = serde_json::from_str(&side).expect("json");
+            (String::from_utf8_lossy(&text).into_owned(), json)
+        };
+        let (text, json) = side(3);
+        assert!(text.contains("session 3: 9 change(s) applied\n"), "{text}");
+        assert_eq!(json["session"], 3);
+        let (text, json) = side(0);
+        assert!(!text.contains("session"), "{text}");
+        assert!(json.get("session").is_none());
     }
 }

@@ -663,6 +663,7 @@ fn assemble(
         }),
         faults: Vec::new(),
         odometry,
+        changes: Vec::new(),
     }
 }
 

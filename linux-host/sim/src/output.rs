@@ -368,7 +368,7 @@ pub fn sidecar(sim: &Simulation) -> serde_json::Value {
             })
         })
         .collect();
-    serde_json::json!({
+    let mut side = serde_json::json!({
         "world": sim.world.name,
         "seed": cfg.seed,
         "duration_s": cfg.duration,
@@ -390,7 +390,13 @@ pub fn sidecar(sim: &Simulation) -> serde_json::Value {
         },
         "timing": timing,
         "faults": faults,
-    })
+    });
+    // Only a changed world says which session it is, so the sidecar of a world as written
+    // keeps its bytes.
+    if sim.world.session > 0 {
+        side["session"] = sim.world.session.into();
+    }
+    side
 }
 
 /// Writes text to `path` atomically.

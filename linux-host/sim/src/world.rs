@@ -72,7 +72,7 @@ pub struct WorldFile {
     /// Wall polylines.
     #[serde(default, rename = "wall")]
     pub walls: Vec<toml::Spanned<WallSpec>>,
-    /// Axis-aligned boxes (furniture, pillars, glass booths).
+    /// Boxes (furniture, pillars, glass booths), axis-aligned unless turned.
     #[serde(default, rename = "box")]
     pub boxes: Vec<toml::Spanned<BoxSpec>>,
     /// Ceiling features.
@@ -92,6 +92,9 @@ pub struct WorldFile {
     /// The robot's odometry sensors, when they differ from the nominal rig.
     #[serde(default, skip_serializing_if = "OdometrySpec::is_nominal")]
     pub odometry: OdometrySpec,
+    /// How the world changes from one mapping session to the next (`cloi sim --session N`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub changes: Vec<toml::Spanned<ChangeSpec>>,
 }
 
 /// How the robot's wheels and gyro differ from the nominal rig: a cheap robot's fixed wheel
@@ -152,9 +155,12 @@ impl Default for CeilingSpec {
 }
 
 /// A wall polyline.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct WallSpec {
+    /// A name that changes can address it by (unique among walls and boxes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
     /// Vertices, metres.
     pub points: Vec<P2>,
     /// Join the last vertex back to the first.
@@ -168,14 +174,21 @@ pub struct WallSpec {
     pub height: Option<f64>,
 }
 
-/// An axis-aligned box made of four segments.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+/// A box made of four segments: the rectangle `min`..`max`, turned by `angle` about its centre.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct BoxSpec {
-    /// Lower-left corner.
+    /// A name that changes can address it by (unique among walls and boxes).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    /// Lower-left corner (before the turn).
     pub min: P2,
-    /// Upper-right corner.
+    /// Upper-right corner (before the turn).
     pub max: P2,
+    /// Counter-clockwise turn about the centre, radians (a moved chair rarely stays square to
+    /// the walls).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub angle: f64,
     /// Material (default `furniture`).
     #[serde(default = "default_box_material")]
     pub material: Material,
@@ -186,6 +199,96 @@ pub struct BoxSpec {
 
 fn default_box_material() -> Material {
     Material::Furniture
+}
+
+// By reference: serde's `skip_serializing_if` passes one.
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
+/// A box or a wall that a change acts on: its `name`, or its 0-based position among the
+/// `[[box]]` (or `[[wall]]`) tables as written.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(
+    untagged,
+    expecting = "a box or wall given by its name (a string) or its 0-based position in the \
+                 file (an integer >= 0)"
+)]
+pub enum ItemRef {
+    /// Position among the tables of its kind as written, from 0.
+    Index(usize),
+    /// The item's `name`.
+    Name(String),
+}
+
+/// One change of the world between mapping sessions. It holds from its `session` on: the world
+/// of session N has every change whose session is 1..=N applied, in session order and, within
+/// a session, in file order.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, rename_all = "snake_case", tag = "kind")]
+pub enum ChangeSpec {
+    /// Furniture moved: a box or a wall shifted by `dx`, `dy` and turned by `angle` (about a
+    /// box's centre, or the mean of a wall's points).
+    Move {
+        /// First session with the change (>= 1).
+        session: u32,
+        /// The box moved (give `box` or `wall`).
+        #[serde(rename = "box", default, skip_serializing_if = "Option::is_none")]
+        box_ref: Option<ItemRef>,
+        /// The wall moved.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        wall: Option<ItemRef>,
+        /// Shift along x, metres.
+        #[serde(default)]
+        dx: f64,
+        /// Shift along y, metres.
+        #[serde(default)]
+        dy: f64,
+        /// Counter-clockwise turn, radians.
+        #[serde(default, skip_serializing_if = "is_zero")]
+        angle: f64,
+    },
+    /// Something taken away: furniture carried out, or a door segment (the door is opened).
+    Remove {
+        /// First session with the change (>= 1).
+        session: u32,
+        /// The box removed (give `box` or `wall`).
+        #[serde(rename = "box", default, skip_serializing_if = "Option::is_none")]
+        box_ref: Option<ItemRef>,
+        /// The wall removed.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        wall: Option<ItemRef>,
+    },
+    /// Something new: a box (clutter) or a wall (a closed door).
+    Add {
+        /// First session with the change (>= 1).
+        session: u32,
+        /// The box added (give `box` or `wall`).
+        #[serde(rename = "box", default, skip_serializing_if = "Option::is_none")]
+        box_spec: Option<BoxSpec>,
+        /// The wall added.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        wall: Option<WallSpec>,
+    },
+}
+
+impl ChangeSpec {
+    /// The first session that has this change.
+    pub fn session(&self) -> u32 {
+        match self {
+            ChangeSpec::Move { session, .. }
+            | ChangeSpec::Remove { session, .. }
+            | ChangeSpec::Add { session, .. } => *session,
+        }
+    }
+
+    fn verb(&self) -> &'static str {
+        match self {
+            ChangeSpec::Move { .. } => "move",
+            ChangeSpec::Remove { .. } => "remove",
+            ChangeSpec::Add { .. } => "add",
+        }
+    }
 }
 
 /// A rectangular ceiling feature.
@@ -423,34 +526,25 @@ impl WorldFile {
             return Err((None, "ceiling_height must be > 0.5 m".into()));
         }
         for w in &self.walls {
-            let min_pts = if w.get_ref().closed { 3 } else { 2 };
-            if w.get_ref().points.len() < min_pts {
-                return Err((
-                    Some(w.span()),
-                    format!("wall needs at least {min_pts} points"),
-                ));
-            }
-            for pair in w.get_ref().points.windows(2) {
-                if !fin(&pair[0]) || !fin(&pair[1]) || dist(pair[0], pair[1]) < 1e-6 {
-                    return Err((
-                        Some(w.span()),
-                        "wall has a zero-length or non-finite segment".into(),
-                    ));
-                }
-            }
-            if let Some(h) = w.get_ref().height {
-                if !(h > 0.0 && h.is_finite()) {
-                    return Err((Some(w.span()), "wall height must be > 0".into()));
+            check_wall(w.get_ref()).map_err(|m| (Some(w.span()), m))?;
+        }
+        for b in &self.boxes {
+            check_box(b.get_ref()).map_err(|m| (Some(b.span()), m))?;
+        }
+        let mut names = std::collections::HashSet::new();
+        let named = self.walls.iter().map(|w| (w.span(), &w.get_ref().name));
+        let named = named.chain(self.boxes.iter().map(|b| (b.span(), &b.get_ref().name)));
+        for (span, name) in named {
+            if let Some(name) = name {
+                if !names.insert(name.as_str()) {
+                    return Err((Some(span), format!("the name {name:?} is used twice")));
                 }
             }
         }
+        // Applying every change checks each one against the world it meets.
+        self.layout(u32::MAX)?;
         let rect_ok =
             |min: &P2, max: &P2| fin(min) && fin(max) && min[0] < max[0] && min[1] < max[1];
-        for b in &self.boxes {
-            if !rect_ok(&b.get_ref().min, &b.get_ref().max) {
-                return Err((Some(b.span()), "box needs min < max".into()));
-            }
-        }
         for f in &self.features {
             if !rect_ok(&f.get_ref().min, &f.get_ref().max) {
                 return Err((Some(f.span()), "feature needs min < max".into()));
@@ -517,6 +611,366 @@ impl WorldFile {
             }
         }
         Ok(())
+    }
+}
+
+fn check_name(name: &Option<String>) -> Result<(), String> {
+    match name {
+        Some(n) if n.trim().is_empty() => Err("a name must not be empty".into()),
+        _ => Ok(()),
+    }
+}
+
+fn check_wall(w: &WallSpec) -> Result<(), String> {
+    check_name(&w.name)?;
+    let fin = |p: &P2| p[0].is_finite() && p[1].is_finite();
+    let min_pts = if w.closed { 3 } else { 2 };
+    if w.points.len() < min_pts {
+        return Err(format!("wall needs at least {min_pts} points"));
+    }
+    for pair in w.points.windows(2) {
+        if !fin(&pair[0]) || !fin(&pair[1]) || dist(pair[0], pair[1]) < 1e-6 {
+            return Err("wall has a zero-length or non-finite segment".into());
+        }
+    }
+    if let Some(h) = w.height {
+        if !(h > 0.0 && h.is_finite()) {
+            return Err("wall height must be > 0".into());
+        }
+    }
+    Ok(())
+}
+
+fn check_box(b: &BoxSpec) -> Result<(), String> {
+    check_name(&b.name)?;
+    let fin = |p: &P2| p[0].is_finite() && p[1].is_finite();
+    if !(fin(&b.min) && fin(&b.max) && b.min[0] < b.max[0] && b.min[1] < b.max[1]) {
+        return Err("box needs min < max".into());
+    }
+    if !b.angle.is_finite() {
+        return Err("box angle must be finite".into());
+    }
+    if let Some(h) = b.height {
+        if !(h > 0.0 && h.is_finite()) {
+            return Err("box height must be > 0".into());
+        }
+    }
+    Ok(())
+}
+
+/// Number of segments a wall polyline is drawn with.
+fn wall_segments(w: &WallSpec) -> u32 {
+    let open = w.points.len().saturating_sub(1);
+    (open + usize::from(w.closed && !w.points.is_empty())) as u32
+}
+
+/// `p` turned by `angle` about `pivot`.
+fn turn(p: P2, pivot: P2, angle: f64) -> P2 {
+    let (s, c) = angle.sin_cos();
+    let (x, y) = (p[0] - pivot[0], p[1] - pivot[1]);
+    [pivot[0] + c * x - s * y, pivot[1] + s * x + c * y]
+}
+
+/// A wall or box standing in a session, with the texture number of its first segment. The
+/// numbers are those of the world as written, and added items count on after its last
+/// segment, so furniture that a session leaves alone looks the same in every session.
+#[derive(Clone, Debug)]
+struct Placed<T> {
+    spec: T,
+    texture: u32,
+}
+
+/// The walls and boxes of one session. Removed items stay as `None` so that positions in the
+/// file keep addressing the same item whatever earlier sessions removed.
+#[derive(Clone, Debug)]
+struct Layout {
+    walls: Vec<Option<Placed<WallSpec>>>,
+    boxes: Vec<Option<Placed<BoxSpec>>>,
+    /// How many walls and boxes the file lists (positions beyond are added items).
+    written: [usize; 2],
+    /// The next texture number for an added item.
+    next_texture: u32,
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum ItemKind {
+    // The discriminants index `Layout::written`.
+    Wall,
+    Box,
+}
+
+impl ItemKind {
+    fn noun(self) -> &'static str {
+        match self {
+            ItemKind::Wall => "wall",
+            ItemKind::Box => "box",
+        }
+    }
+}
+
+fn name_of<T>(item: &Option<Placed<T>>, name: impl Fn(&T) -> &Option<String>) -> Option<&str> {
+    item.as_ref().and_then(|p| name(&p.spec).as_deref())
+}
+
+impl Layout {
+    fn as_written(file: &WorldFile) -> Layout {
+        let mut texture = 0u32;
+        let mut walls = Vec::with_capacity(file.walls.len());
+        for w in &file.walls {
+            walls.push(Some(Placed {
+                spec: w.get_ref().clone(),
+                texture,
+            }));
+            texture = texture.wrapping_add(wall_segments(w.get_ref()));
+        }
+        let mut boxes = Vec::with_capacity(file.boxes.len());
+        for b in &file.boxes {
+            boxes.push(Some(Placed {
+                spec: b.get_ref().clone(),
+                texture,
+            }));
+            texture = texture.wrapping_add(4);
+        }
+        Layout {
+            written: [walls.len(), boxes.len()],
+            walls,
+            boxes,
+            next_texture: texture,
+        }
+    }
+
+    fn wall_name(&self, i: usize) -> Option<&str> {
+        name_of(&self.walls[i], |w: &WallSpec| &w.name)
+    }
+
+    fn box_name(&self, i: usize) -> Option<&str> {
+        name_of(&self.boxes[i], |b: &BoxSpec| &b.name)
+    }
+
+    fn position_of_name(&self, kind: ItemKind, name: &str) -> Option<usize> {
+        match kind {
+            ItemKind::Wall => (0..self.walls.len()).find(|&i| self.wall_name(i) == Some(name)),
+            ItemKind::Box => (0..self.boxes.len()).find(|&i| self.box_name(i) == Some(name)),
+        }
+    }
+
+    /// Where the item `r` of `kind` stands in this session.
+    fn find(&self, kind: ItemKind, r: &ItemRef) -> Result<usize, String> {
+        let noun = kind.noun();
+        match r {
+            ItemRef::Index(i) => {
+                let written = self.written[kind as usize];
+                let standing = match kind {
+                    ItemKind::Wall => self.walls.get(*i).is_some_and(Option::is_some),
+                    ItemKind::Box => self.boxes.get(*i).is_some_and(Option::is_some),
+                };
+                if *i >= written {
+                    Err(format!(
+                        "{noun} {i}: the file has {written} {noun} table(s), counted from 0 \
+                         (an added {noun} is addressed by its name)"
+                    ))
+                } else if !standing {
+                    Err(format!("{noun} {i} was removed by an earlier change"))
+                } else {
+                    Ok(*i)
+                }
+            }
+            ItemRef::Name(name) => {
+                if let Some(i) = self.position_of_name(kind, name) {
+                    return Ok(i);
+                }
+                let other = if kind == ItemKind::Wall {
+                    ItemKind::Box
+                } else {
+                    ItemKind::Wall
+                };
+                if self.position_of_name(other, name).is_some() {
+                    Err(format!("{name:?} names a {}, not a {noun}", other.noun()))
+                } else {
+                    Err(format!(
+                        "no {noun} named {name:?} stands here (misspelt, removed earlier or \
+                         added only later)"
+                    ))
+                }
+            }
+        }
+    }
+
+    fn check_free(&self, name: &Option<String>) -> Result<(), String> {
+        if let Some(name) = name {
+            for kind in [ItemKind::Wall, ItemKind::Box] {
+                if self.position_of_name(kind, name).is_some() {
+                    return Err(format!("a {} named {name:?} stands already", kind.noun()));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Applies one change.
+    fn apply(&mut self, change: &ChangeSpec) -> Result<(), String> {
+        let target = |b: &Option<ItemRef>, w: &Option<ItemRef>| match (b, w) {
+            (Some(b), None) => Ok((ItemKind::Box, b.clone())),
+            (None, Some(w)) => Ok((ItemKind::Wall, w.clone())),
+            _ => Err("give either `box` or `wall`".to_string()),
+        };
+        match change {
+            ChangeSpec::Move {
+                box_ref,
+                wall,
+                dx,
+                dy,
+                angle,
+                ..
+            } => {
+                let (kind, r) = target(box_ref, wall)?;
+                if !(dx.is_finite() && dy.is_finite() && angle.is_finite()) {
+                    return Err("dx, dy and angle must be finite numbers".into());
+                }
+                if *dx == 0.0 && *dy == 0.0 && *angle == 0.0 {
+                    return Err("a move needs a non-zero dx, dy or angle".into());
+                }
+                let i = self.find(kind, &r)?;
+                match kind {
+                    ItemKind::Box => {
+                        let Some(placed) = self.boxes[i].as_mut() else {
+                            return Err("box is gone".into());
+                        };
+                        let b = &mut placed.spec;
+                        b.min = [b.min[0] + dx, b.min[1] + dy];
+                        b.max = [b.max[0] + dx, b.max[1] + dy];
+                        b.angle += angle;
+                        check_box(b).map_err(|m| format!("the moved box: {m}"))?;
+                    }
+                    ItemKind::Wall => {
+                        let Some(placed) = self.walls[i].as_mut() else {
+                            return Err("wall is gone".into());
+                        };
+                        let w = &mut placed.spec;
+                        let n = w.points.len().max(1) as f64;
+                        let pivot = w
+                            .points
+                            .iter()
+                            .fold([0.0, 0.0], |s, p| [s[0] + p[0] / n, s[1] + p[1] / n]);
+                        for p in &mut w.points {
+                            let q = if *angle == 0.0 {
+                                *p
+                            } else {
+                                turn(*p, pivot, *angle)
+                            };
+                            *p = [q[0] + dx, q[1] + dy];
+                        }
+                        check_wall(w).map_err(|m| format!("the moved wall: {m}"))?;
+                    }
+                }
+            }
+            ChangeSpec::Remove { box_ref, wall, .. } => {
+                let (kind, r) = target(box_ref, wall)?;
+                let i = self.find(kind, &r)?;
+                match kind {
+                    ItemKind::Box => self.boxes[i] = None,
+                    ItemKind::Wall => self.walls[i] = None,
+                }
+            }
+            ChangeSpec::Add { box_spec, wall, .. } => match (box_spec, wall) {
+                (Some(b), None) => {
+                    check_box(b).map_err(|m| format!("the added box: {m}"))?;
+                    self.check_free(&b.name)?;
+                    self.boxes.push(Some(Placed {
+                        spec: b.clone(),
+                        texture: self.next_texture,
+                    }));
+                    self.next_texture = self.next_texture.wrapping_add(4);
+                }
+                (None, Some(w)) => {
+                    check_wall(w).map_err(|m| format!("the added wall: {m}"))?;
+                    self.check_free(&w.name)?;
+                    self.walls.push(Some(Placed {
+                        spec: w.clone(),
+                        texture: self.next_texture,
+                    }));
+                    self.next_texture = self.next_texture.wrapping_add(wall_segments(w));
+                }
+                _ => return Err("give either `box` or `wall`".into()),
+            },
+        }
+        Ok(())
+    }
+}
+
+impl WorldFile {
+    /// The last session that changes the world (0 for a world without changes); later
+    /// sessions look like this one.
+    pub fn last_session(&self) -> u32 {
+        self.changes
+            .iter()
+            .map(|c| c.get_ref().session())
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// The walls and boxes of `session`: every change of sessions 1..=`session` applied.
+    fn layout(&self, session: u32) -> Result<Layout, (Option<std::ops::Range<usize>>, String)> {
+        let mut layout = Layout::as_written(self);
+        let mut order: Vec<&toml::Spanned<ChangeSpec>> = self.changes.iter().collect();
+        // Stable: changes of one session apply in file order.
+        order.sort_by_key(|c| c.get_ref().session());
+        for c in order {
+            let change = c.get_ref();
+            let s = change.session();
+            if s == 0 {
+                return Err((
+                    Some(c.span()),
+                    "a change needs session >= 1 (session 0 is the world as written)".into(),
+                ));
+            }
+            if s > session {
+                break;
+            }
+            layout.apply(change).map_err(|m| {
+                (
+                    Some(c.span()),
+                    format!("session {s} {}: {m}", change.verb()),
+                )
+            })?;
+        }
+        Ok(layout)
+    }
+
+    /// What segment `index` of the world of `session` belongs to, for messages
+    /// (`box "armchair"`, `wall 3`, `added box "toy-box"`).
+    pub fn describe_segment(&self, session: u32, index: usize) -> Option<String> {
+        let layout = self.layout(session).ok()?;
+        let mut first = 0usize;
+        let label = |kind: ItemKind, i: usize, name: Option<&str>| {
+            let added = if i >= layout.written[kind as usize] {
+                "added "
+            } else {
+                ""
+            };
+            match name {
+                Some(n) => format!("{added}{} {n:?}", kind.noun()),
+                None => format!("{added}{} {i}", kind.noun()),
+            }
+        };
+        for (i, w) in layout.walls.iter().enumerate() {
+            if let Some(w) = w {
+                let n = wall_segments(&w.spec) as usize;
+                if index < first + n {
+                    return Some(label(ItemKind::Wall, i, layout.wall_name(i)));
+                }
+                first += n;
+            }
+        }
+        for (i, b) in layout.boxes.iter().enumerate() {
+            if b.is_some() {
+                if index < first + 4 {
+                    return Some(label(ItemKind::Box, i, layout.box_name(i)));
+                }
+                first += 4;
+            }
+        }
+        None
     }
 }
 
@@ -699,6 +1153,8 @@ pub struct World {
     pub faults: Vec<FaultSpec>,
     /// How the odometry sensors differ from the nominal rig.
     pub odometry: OdometrySpec,
+    /// The mapping session this world shows (0: as written).
+    pub session: u32,
     /// Bounding box lower-left corner.
     pub bounds_min: P2,
     /// Bounding box upper-right corner.
@@ -714,12 +1170,32 @@ fn dist(a: P2, b: P2) -> f64 {
 }
 
 impl World {
-    /// Builds and indexes a world from its (validated) file form.
+    /// Builds and indexes a world from its (validated) file form, as written (session 0).
     pub fn from_file(file: &WorldFile) -> World {
+        World::build(file, &Layout::as_written(file), 0)
+    }
+
+    /// Builds the world of mapping session `session`: every change of sessions 1..=`session`
+    /// applied (0: the world as written; past the last session: the last session's world).
+    /// Posters and ceiling features stay where they are written.
+    ///
+    /// # Errors
+    /// A change that does not apply (unknown name, degenerate result, ...): only for a file
+    /// that was not validated, since parsing applies every change.
+    pub fn at_session(file: &WorldFile, session: u32) -> Result<World, WorldError> {
+        let layout = file.layout(session).map_err(|(_, message)| WorldError {
+            file: file.name.clone(),
+            line: None,
+            message,
+        })?;
+        Ok(World::build(file, &layout, session))
+    }
+
+    fn build(file: &WorldFile, layout: &Layout, session: u32) -> World {
         let h = file.ceiling_height;
         let mut segments = Vec::new();
-        let mut push = |a: P2, b: P2, material: Material, height: f64| {
-            let texture = (segments.len() as u32).wrapping_mul(2_654_435_761) ^ 0x5bd1_e995;
+        let mut push = |a: P2, b: P2, material: Material, height: f64, number: u32| {
+            let texture = number.wrapping_mul(2_654_435_761) ^ 0x5bd1_e995;
             segments.push(Segment {
                 a,
                 b,
@@ -728,27 +1204,41 @@ impl World {
                 texture,
             });
         };
-        for w in &file.walls {
-            let w = w.get_ref();
+        for w in layout.walls.iter().flatten() {
+            let number = w.texture;
+            let w = &w.spec;
             let height = w.height.unwrap_or(h);
+            let mut k = number;
             for pair in w.points.windows(2) {
-                push(pair[0], pair[1], w.material, height);
+                push(pair[0], pair[1], w.material, height, k);
+                k = k.wrapping_add(1);
             }
             if w.closed {
                 if let (Some(&last), Some(&first)) = (w.points.last(), w.points.first()) {
-                    push(last, first, w.material, height);
+                    push(last, first, w.material, height, k);
                 }
             }
         }
-        for b in &file.boxes {
-            let b = b.get_ref();
+        for b in layout.boxes.iter().flatten() {
+            let number = b.texture;
+            let b = &b.spec;
             let height = b.height.unwrap_or(match b.material {
                 Material::Furniture => 0.8,
                 _ => h,
             });
-            let c = [b.min, [b.max[0], b.min[1]], b.max, [b.min[0], b.max[1]]];
+            let mut c = [b.min, [b.max[0], b.min[1]], b.max, [b.min[0], b.max[1]]];
+            if b.angle != 0.0 {
+                let centre = [(b.min[0] + b.max[0]) / 2.0, (b.min[1] + b.max[1]) / 2.0];
+                c = c.map(|p| turn(p, centre, b.angle));
+            }
             for i in 0..4 {
-                push(c[i], c[(i + 1) % 4], b.material, height);
+                push(
+                    c[i],
+                    c[(i + 1) % 4],
+                    b.material,
+                    height,
+                    number.wrapping_add(i as u32),
+                );
             }
         }
         let features: Vec<Feature> = file
@@ -853,6 +1343,7 @@ impl World {
             route: file.route.get_ref().clone(),
             faults: file.faults.iter().map(|f| f.get_ref().clone()).collect(),
             odometry: file.odometry.clone(),
+            session,
             bounds_min: lo,
             bounds_max: hi,
             segment_grid,
@@ -985,10 +1476,15 @@ impl World {
     /// Whether the straight path from `a` to `b` keeps `clearance` from every segment taller
     /// than 5 cm (used to check routes).
     pub fn path_is_clear(&self, a: P2, b: P2, clearance: f64) -> bool {
+        self.path_blocker(a, b, clearance).is_none()
+    }
+
+    /// The first segment taller than 5 cm that the straight path from `a` to `b` passes closer
+    /// than `clearance` to.
+    pub fn path_blocker(&self, a: P2, b: P2, clearance: f64) -> Option<usize> {
         self.segments
             .iter()
-            .filter(|s| s.height > 0.05)
-            .all(|s| segment_segment_distance(a, b, s.a, s.b) >= clearance)
+            .position(|s| s.height > 0.05 && segment_segment_distance(a, b, s.a, s.b) < clearance)
     }
 }
 
@@ -1110,5 +1606,314 @@ legs = [{ type = "waypoints", points = [[9, 1], [9, 9]] }]
             err.to_string().contains("b.toml:13: box needs min < max"),
             "{err}"
         );
+    }
+
+    /// SQUARE with two named boxes, an unnamed one and a change list.
+    fn with_changes(changes: &str) -> String {
+        format!(
+            "{SQUARE}
+[[box]]
+name = \"chair\"
+min = [2, 2]
+max = [3, 3]
+
+[[box]]
+min = [6, 6]
+max = [7, 7]
+
+[[wall]]
+name = \"door\"
+points = [[4, 0], [4, 2]]
+{changes}"
+        )
+    }
+
+    const CHANGES: &str = r#"
+[[changes]]
+session = 2
+kind = "remove"
+wall = "door"
+
+[[changes]]
+session = 1
+kind = "move"
+box = "chair"
+dx = 1
+dy = -0.5
+
+[[changes]]
+session = 1
+kind = "add"
+box = { name = "crate", min = [8, 2], max = [8.5, 2.5], height = 0.3 }
+
+[[changes]]
+session = 3
+kind = "move"
+box = 1
+dx = -1
+angle = 0.5
+
+[[changes]]
+session = 3
+kind = "remove"
+box = "crate"
+"#;
+
+    fn ends(world: &World) -> Vec<[f64; 4]> {
+        world
+            .segments
+            .iter()
+            .map(|s| [s.a[0], s.a[1], s.b[0], s.b[1]])
+            .collect()
+    }
+
+    fn has(world: &World, a: P2, b: P2) -> bool {
+        world.segments.iter().any(|s| s.a == a && s.b == b)
+    }
+
+    #[test]
+    fn changes_accumulate_over_sessions() {
+        let file = WorldFile::parse(&with_changes(CHANGES), "c.toml").expect("valid");
+        assert_eq!(file.last_session(), 3);
+        let at = |n| World::at_session(&file, n).expect("applies");
+        let s0 = at(0);
+        assert_eq!(ends(&s0), ends(&World::from_file(&file)));
+        // 4 square walls, the door, two boxes.
+        assert_eq!(s0.segments.len(), 4 + 1 + 8);
+        assert!(has(&s0, [2.0, 2.0], [3.0, 2.0]) && has(&s0, [4.0, 0.0], [4.0, 2.0]));
+
+        // Session 1: the chair moved and a crate added; the door still stands.
+        let s1 = at(1);
+        assert_eq!(s1.session, 1);
+        assert_eq!(s1.segments.len(), 4 + 1 + 12);
+        assert!(!has(&s1, [2.0, 2.0], [3.0, 2.0]));
+        assert!(has(&s1, [3.0, 1.5], [4.0, 1.5]));
+        assert!(has(&s1, [8.0, 2.0], [8.5, 2.0]));
+        let crate_seg = s1.segments.iter().find(|s| s.a == [8.0, 2.0]).unwrap();
+        assert!((crate_seg.height - 0.3).abs() < 1e-12);
+
+        // Session 2 adds the door's opening to session 1's changes.
+        let s2 = at(2);
+        assert_eq!(s2.segments.len(), 4 + 12);
+        assert!(!has(&s2, [4.0, 0.0], [4.0, 2.0]) && has(&s2, [3.0, 1.5], [4.0, 1.5]));
+
+        // Session 3: the unnamed box (by position) moved and turned, the crate gone.
+        let s3 = at(3);
+        assert_eq!(s3.segments.len(), 4 + 8);
+        assert!(!has(&s3, [8.0, 2.0], [8.5, 2.0]));
+        let turned: Vec<&Segment> = s3.segments[s3.segments.len() - 4..].iter().collect();
+        for s in &turned {
+            // A 1 m square about (5.5, 6.5): corners at 0.707 m from the centre, none axis-aligned.
+            let r = dist(s.a, [5.5, 6.5]);
+            assert!((r - 0.5f64.sqrt()).abs() < 1e-12, "{r}");
+            assert!((dist(s.a, s.b) - 1.0).abs() < 1e-12);
+            assert!((s.a[0] - s.b[0]).abs() > 0.1 && (s.a[1] - s.b[1]).abs() > 0.1);
+        }
+        // Past the last session the world stays as in the last one.
+        assert_eq!(ends(&at(9)), ends(&s3));
+        assert_eq!(ends(&at(u32::MAX)), ends(&s3));
+    }
+
+    #[test]
+    fn unchanged_items_keep_their_texture_across_sessions() {
+        let file = WorldFile::parse(&with_changes(CHANGES), "c.toml").expect("valid");
+        let s0 = World::from_file(&file);
+        for n in 1..=3 {
+            let sn = World::at_session(&file, n).expect("applies");
+            for s in &sn.segments {
+                if let Some(same) = s0.segments.iter().find(|o| o.a == s.a && o.b == s.b) {
+                    assert_eq!(same.texture, s.texture, "session {n}: {s:?}");
+                }
+            }
+        }
+        // Moved items keep their texture too; added ones get their own.
+        let s1 = World::at_session(&file, 1).expect("applies");
+        let chair = |w: &World, a: P2| w.segments.iter().find(|s| s.a == a).unwrap().texture;
+        assert_eq!(chair(&s0, [2.0, 2.0]), chair(&s1, [3.0, 1.5]));
+        let mut all: Vec<u32> = s1.segments.iter().map(|s| s.texture).collect();
+        all.sort_unstable();
+        all.dedup();
+        assert_eq!(all.len(), s1.segments.len());
+    }
+
+    #[test]
+    fn a_world_without_changes_is_the_same_in_every_session() {
+        let file = WorldFile::parse(SQUARE, "square.toml").expect("valid");
+        assert_eq!(file.last_session(), 0);
+        let s0 = World::from_file(&file);
+        assert_eq!(s0.segments, World::at_session(&file, 5).unwrap().segments);
+        let text = file.to_toml().expect("serialisable");
+        assert!(
+            !text.contains("[[changes]]") && !text.contains("angle"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn changes_survive_a_round_trip() {
+        let file = WorldFile::parse(&with_changes(CHANGES), "c.toml").expect("valid");
+        let text = file.to_toml().expect("serialisable");
+        let back = WorldFile::parse(&text, "back.toml").expect("round trip");
+        for n in 0..=3 {
+            let a = World::at_session(&file, n).unwrap();
+            let b = World::at_session(&back, n).unwrap();
+            assert_eq!(a.segments, b.segments, "session {n}");
+        }
+    }
+
+    /// The error of the world with `changes`, which must name `c.toml` and the line of the
+    /// `[[changes]]` table that starts at `line`.
+    fn change_error(changes: &str) -> WorldError {
+        WorldFile::parse(&with_changes(changes), "c.toml").expect_err("invalid change")
+    }
+
+    #[test]
+    fn bad_changes_are_errors_naming_the_line() {
+        // Line of the first `[[changes]]` header after the base world.
+        let first = with_changes("").lines().count() + 2;
+        for (changes, expected) in [
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"move\"\nbox = \"chiar\"\ndx = 1\n",
+                "session 1 move: no box named \"chiar\"",
+            ),
+            (
+                "\n[[changes]]\nsession = 0\nkind = \"remove\"\nbox = \"chair\"\n",
+                "a change needs session >= 1",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"move\"\nbox = \"chair\"\ndx = nan\n",
+                "must be finite",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"move\"\nbox = \"chair\"\ndy = inf\n",
+                "must be finite",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"move\"\nbox = \"chair\"\nangle = -inf\n",
+                "must be finite",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"move\"\nbox = \"chair\"\n",
+                "non-zero dx, dy or angle",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"remove\"\nbox = \"chair\"\nwall = \"door\"\n",
+                "either `box` or `wall`",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"remove\"\n",
+                "either `box` or `wall`",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"remove\"\nbox = \"door\"\n",
+                "\"door\" names a wall, not a box",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"remove\"\nbox = 2\n",
+                "box 2: the file has 2 box table(s)",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"remove\"\nbox = \"chair\"\n\n\
+                 [[changes]]\nsession = 1\nkind = \"move\"\nbox = \"chair\"\ndx = 1\n",
+                "no box named \"chair\"",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"remove\"\nbox = 1\n\n\
+                 [[changes]]\nsession = 2\nkind = \"remove\"\nbox = 1\n",
+                "box 1 was removed by an earlier change",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"add\"\nbox = { min = [3, 3], max = [2, 4] }\n",
+                "the added box: box needs min < max",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"add\"\n\
+                 wall = { name = \"chair\", points = [[1, 5], [2, 5]] }\n",
+                "a box named \"chair\" stands already",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"add\"\nwall = { points = [[1, 5], [1, 5]] }\n",
+                "zero-length",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"move\"\nbox = \"chair\"\ndx = 1e308\n",
+                "the moved box: box needs min < max",
+            ),
+        ] {
+            let err = change_error(changes);
+            let msg = err.to_string();
+            assert!(msg.starts_with("c.toml:"), "{msg}");
+            assert!(msg.contains(expected), "{changes}\n=> {msg}");
+            let line = err.line.expect("a line");
+            assert!(line >= first, "{msg}: line {line} before the changes");
+        }
+        // Schema errors: the parser's own messages, still with file and line.
+        for (changes, expected) in [
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"shuffle\"\nbox = \"chair\"\n",
+                "shuffle",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"move\"\nbox = \"chair\"\ndz = 1\n",
+                "dz",
+            ),
+            (
+                "\n[[changes]]\nsession = -1\nkind = \"remove\"\nbox = \"chair\"\n",
+                "-1",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"remove\"\nbox = 1.5\n",
+                "its name (a string) or its 0-based position",
+            ),
+            (
+                "\n[[changes]]\nsession = 1\nkind = \"remove\"\nbox = -1\n",
+                "its name (a string) or its 0-based position",
+            ),
+        ] {
+            let msg = change_error(changes).to_string();
+            assert!(msg.starts_with("c.toml:"), "{msg}");
+            assert!(msg.contains(expected), "{changes}\n=> {msg}");
+        }
+    }
+
+    #[test]
+    fn names_must_be_unique_and_not_empty() {
+        let twice = format!("{SQUARE}\n[[box]]\nname = \"a\"\nmin = [1, 1]\nmax = [2, 2]\n\n[[wall]]\nname = \"a\"\npoints = [[5, 5], [6, 5]]\n");
+        let msg = WorldFile::parse(&twice, "n.toml")
+            .expect_err("twice")
+            .to_string();
+        assert!(msg.contains("the name \"a\" is used twice"), "{msg}");
+        let empty = format!("{SQUARE}\n[[box]]\nname = \" \"\nmin = [1, 1]\nmax = [2, 2]\n");
+        let msg = WorldFile::parse(&empty, "n.toml")
+            .expect_err("empty")
+            .to_string();
+        assert!(msg.contains("must not be empty"), "{msg}");
+        // A removed item's name is free again: a door can be taken out and put back.
+        let again = with_changes(
+            "\n[[changes]]\nsession = 1\nkind = \"remove\"\nwall = \"door\"\n\n\
+             [[changes]]\nsession = 2\nkind = \"add\"\nwall = { name = \"door\", points = [[4, 0], [4, 2]] }\n",
+        );
+        let file = WorldFile::parse(&again, "n.toml").expect("valid");
+        let s2 = World::at_session(&file, 2).unwrap();
+        assert!(has(&s2, [4.0, 0.0], [4.0, 2.0]));
+        assert!(!has(
+            &World::at_session(&file, 1).unwrap(),
+            [4.0, 0.0],
+            [4.0, 2.0]
+        ));
+    }
+
+    #[test]
+    fn describes_the_item_a_segment_belongs_to() {
+        let file = WorldFile::parse(&with_changes(CHANGES), "c.toml").expect("valid");
+        let world = World::at_session(&file, 1).unwrap();
+        let find = |a: P2| world.segments.iter().position(|s| s.a == a).unwrap();
+        let describe = |a: P2| file.describe_segment(1, find(a)).unwrap();
+        assert_eq!(describe([0.0, 0.0]), "wall 0");
+        assert_eq!(describe([4.0, 0.0]), "wall \"door\"");
+        assert_eq!(describe([3.0, 1.5]), "box \"chair\"");
+        assert_eq!(describe([6.0, 6.0]), "box 1");
+        assert_eq!(describe([8.0, 2.0]), "added box \"crate\"");
+        assert_eq!(file.describe_segment(1, world.segments.len()), None);
     }
 }
