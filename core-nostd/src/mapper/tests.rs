@@ -1098,72 +1098,81 @@ fn a_lidar_alone_maps_the_laps_seeded_by_its_own_motion() {
 }
 
 #[test]
-fn a_later_session_extends_a_saved_map() {
-    with_stack(|| {
-        // The first session drove half of the first lap; the second drives the whole second
-        // lap with biased odometry, found in the map by global localization.
-        let lap = path().len() / 2;
-        let (map, map_error) = saved_map_of(0..lap / 2);
-        let truth = path();
-        let to_map = |p: &Se2| truth[0].between(p);
-        let mut res: Box<TestResources> = Box::default();
-        let mut parts = res.parts();
-        let mut input: &[u8] = &map;
-        let summary = mapfile::MapReader::open(&mut input)
-            .expect("a map")
-            .read_into_parts(config().grid, &mut parts)
-            .expect("fits");
-        let mut mapper = parts.extend(config(), None).expect("fits");
-        let frames: Vec<usize> = (lap..truth.len()).collect();
-        let outputs = feed_visits(&mut mapper, &frames, 0.035);
-        mapper.request_optimization();
-        while mapper.step_backend(10) != BackendStep::Idle {}
-        let c = mapper.localize_counters().expect("started by localizing");
-        let s = mapper.stats();
-        assert_eq!((c.fixes, c.lost), (1, 0), "{c:?}");
-        let first = mapper.session_first_serial().expect("joined");
-        assert_eq!(first, summary.next_serial, "{c:?}");
-        // Joined within 5 s, then mapping: every later frame is tied to this session's nodes.
-        let joined = outputs.iter().position(|o| o.reference_serial >= first);
-        let Some(joined) = joined else {
-            panic!("no frame after the join: {c:?} {s:?}");
-        };
-        assert!(joined < 50, "joined after {joined} frames, {c:?}");
-        assert!(s.keyframes > 50, "{s:?}");
-        assert!(s.loop_closures >= 2, "{s:?}");
-        assert_eq!(
-            mapper.graph().node_count(),
-            summary.nodes as usize + s.keyframes as usize - s.nodes_pruned as usize
-        );
-        // The old nodes keep their serials, the new ones follow them.
-        let serials: Vec<u32> = mapper.nodes().iter().map(|m| m.serial).collect();
-        assert!(serials.windows(2).all(|w| w[0] < w[1]));
-        // The map and this session's keyframes agree with the truth in the map's frame as well
-        // as one session driving both laps with this odometry does (0.085 m at worst).
-        let mut worst: f64 = 0.0;
-        for (m, n) in mapper.nodes().iter().zip(mapper.graph().nodes()) {
-            let frame = ((m.stamp - 1_000_000_000) / 100_000_000) as usize;
-            let e = to_map(&truth[frame]).between(&n.pose);
-            worst = worst.max(libm::hypot(e.x, e.y));
-        }
-        assert!(
-            worst < 0.08,
-            "worst keyframe error {worst} m (first session {map_error} m), {c:?} {s:?}"
-        );
-        // Real-time poses after the join, too.
-        for (o, &i) in outputs.iter().zip(&frames).skip(joined) {
-            let e = to_map(&truth[i]).between(&o.pose);
-            assert!(libm::hypot(e.x, e.y) < 0.1, "frame {i}: {e:?}");
-        }
-        // The grown map saves and reads back whole.
-        let mut buf = std::vec![0u8; 1 << 20];
-        let mut sink: &mut [u8] = &mut buf;
-        let n = mapfile::write_map(&mapper.saved_map(), &mut sink).expect("fits");
-        let mut back: &[u8] = &buf[..n as usize];
-        let again = mapfile::MapReader::open(&mut back)
-            .expect("a map")
-            .summary();
-        assert_eq!(again.nodes as usize, mapper.graph().node_count());
-        assert!(again.next_serial > summary.next_serial);
-    });
+fn a_later_session_extends_a_saved_map_from_nowhere() {
+    with_stack(|| extend_first_half_lap(false));
+}
+
+#[test]
+fn a_later_session_extends_a_saved_map_from_its_known_start() {
+    with_stack(|| extend_first_half_lap(true));
+}
+
+/// The first session drove half of the first lap; the second drives the whole second lap with
+/// biased odometry, found in the map from its known start (`initial`) or by global
+/// localization.
+fn extend_first_half_lap(initial: bool) {
+    let lap = path().len() / 2;
+    let (map, map_error) = saved_map_of(0..lap / 2);
+    let truth = path();
+    let to_map = |p: &Se2| truth[0].between(p);
+    let mut res: Box<TestResources> = Box::default();
+    let mut parts = res.parts();
+    let mut input: &[u8] = &map;
+    let summary = mapfile::MapReader::open(&mut input)
+        .expect("a map")
+        .read_into_parts(config().grid, &mut parts)
+        .expect("fits");
+    let initial = initial.then(|| to_map(&truth[lap]));
+    let mut mapper = parts.extend(config(), initial).expect("fits");
+    let frames: Vec<usize> = (lap..truth.len()).collect();
+    let outputs = feed_visits(&mut mapper, &frames, 0.035);
+    mapper.request_optimization();
+    while mapper.step_backend(10) != BackendStep::Idle {}
+    let c = mapper.localize_counters().expect("started by localizing");
+    let s = mapper.stats();
+    assert_eq!((c.fixes, c.lost), (1, 0), "{c:?}");
+    let first = mapper.session_first_serial().expect("joined");
+    assert_eq!(first, summary.next_serial, "{c:?}");
+    // Joined within 5 s, then mapping: every later frame is tied to this session's nodes.
+    let joined = outputs.iter().position(|o| o.reference_serial >= first);
+    let Some(joined) = joined else {
+        panic!("no frame after the join: {c:?} {s:?}");
+    };
+    assert!(joined < 50, "joined after {joined} frames, {c:?}");
+    assert!(s.keyframes > 50, "{s:?}");
+    assert!(s.loop_closures >= 2, "{s:?}");
+    assert_eq!(
+        mapper.graph().node_count(),
+        summary.nodes as usize + s.keyframes as usize - s.nodes_pruned as usize
+    );
+    // The old nodes keep their serials, the new ones follow them.
+    let serials: Vec<u32> = mapper.nodes().iter().map(|m| m.serial).collect();
+    assert!(serials.windows(2).all(|w| w[0] < w[1]));
+    // The map and this session's keyframes agree with the truth in the map's frame as well
+    // as one session driving both laps with this odometry does (0.085 m at worst).
+    let mut worst: f64 = 0.0;
+    for (m, n) in mapper.nodes().iter().zip(mapper.graph().nodes()) {
+        let frame = ((m.stamp - 1_000_000_000) / 100_000_000) as usize;
+        let e = to_map(&truth[frame]).between(&n.pose);
+        worst = worst.max(libm::hypot(e.x, e.y));
+    }
+    assert!(
+        worst < 0.08,
+        "worst keyframe error {worst} m (first session {map_error} m), {c:?} {s:?}"
+    );
+    // Real-time poses after the join, too.
+    for (o, &i) in outputs.iter().zip(&frames).skip(joined) {
+        let e = to_map(&truth[i]).between(&o.pose);
+        assert!(libm::hypot(e.x, e.y) < 0.1, "frame {i}: {e:?}");
+    }
+    // The grown map saves and reads back whole.
+    let mut buf = std::vec![0u8; 1 << 20];
+    let mut sink: &mut [u8] = &mut buf;
+    let n = mapfile::write_map(&mapper.saved_map(), &mut sink).expect("fits");
+    let mut back: &[u8] = &buf[..n as usize];
+    let again = mapfile::MapReader::open(&mut back)
+        .expect("a map")
+        .summary();
+    assert_eq!(again.nodes as usize, mapper.graph().node_count());
+    assert!(again.next_serial > summary.next_serial);
 }

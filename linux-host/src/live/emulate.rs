@@ -121,7 +121,7 @@ pub fn run(kind: LidarKind, args: &EmulateArgs, out: &mut dyn Write) -> Result<(
         faults: false,
         ..SimConfig::default()
     };
-    for event in sim_input_with(&args.world, sim)? {
+    for event in sim_input_with(&args.world, 0, sim)? {
         let event = event?;
         let t0 = *first.get_or_insert(event.t_ns());
         // Kinds are not exactly in stamp order (a scan is stamped at its sweep's start).

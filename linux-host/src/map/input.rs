@@ -64,7 +64,7 @@ pub use crate::io::parse_pose;
 use crate::io::ros2::{LaserScan, TfMessage};
 use crate::sim::engine::{Payload, Sample, SampleSink};
 use crate::sim::output::EPOCH_NS;
-use crate::sim::{SensorSet, SimConfig, Simulation, World};
+use crate::sim::{SensorSet, SimConfig, Simulation};
 
 /// One sensor measurement for the mapper.
 #[derive(Debug, Clone, PartialEq)]
@@ -1250,8 +1250,23 @@ impl EventSource for ThreadSource {
 /// # Errors
 /// Unknown world, an invalid world file or a bad duration.
 pub fn sim_input(world: &str, duration: f64, seed: u64) -> Result<InputStream> {
+    sim_session_input(world, 0, duration, seed)
+}
+
+/// [`sim_input`] of mapping session `session` of the world (its changes up to that session
+/// applied; 0 is the world as written).
+///
+/// # Errors
+/// See [`sim_input`], and changes that do not apply or block the route.
+pub fn sim_session_input(
+    world: &str,
+    session: u32,
+    duration: f64,
+    seed: u64,
+) -> Result<InputStream> {
     sim_input_with(
         world,
+        session,
         SimConfig {
             duration,
             seed,
@@ -1265,7 +1280,7 @@ pub fn sim_input(world: &str, duration: f64, seed: u64) -> Result<InputStream> {
 ///
 /// # Errors
 /// See [`sim_input`].
-pub fn sim_input_with(world: &str, cfg: SimConfig) -> Result<InputStream> {
+pub fn sim_input_with(world: &str, session: u32, cfg: SimConfig) -> Result<InputStream> {
     if !(cfg.duration > 0.0 && cfg.duration.is_finite()) {
         bail!("the simulated duration must be a positive number of seconds");
     }
@@ -1273,7 +1288,8 @@ pub fn sim_input_with(world: &str, cfg: SimConfig) -> Result<InputStream> {
         bail!("the mapper needs the simulated LiDAR (sensor set L or C+L)");
     }
     let file = crate::sim::command::load_world(world, cfg.duration)?;
-    let sim = Simulation::new(World::from_file(&file), cfg);
+    let world = crate::sim::command::session_world(&file, session, &mut std::io::sink())?;
+    let sim = Simulation::new(world, cfg);
     let laser_offset = sim
         .rig
         .lidar
@@ -1349,6 +1365,10 @@ pub struct InputArgs {
     /// Without INPUT: the simulator's seed.
     #[arg(long, default_value_t = 0)]
     pub sim_seed: u64,
+    /// Without INPUT: the mapping session of the simulated world (its furniture moved, doors
+    /// opened or closed, clutter added as its `[[changes]]` say; 0: the world as written).
+    #[arg(long, default_value_t = 0)]
+    pub sim_session: u32,
 }
 
 impl InputArgs {
@@ -1381,7 +1401,12 @@ impl InputArgs {
     pub fn open(&self, input: Option<&Path>) -> Result<InputStream> {
         match input {
             Some(path) => open_input(path, &self.options()),
-            None => sim_input(&self.sim_world, self.sim_duration, self.sim_seed),
+            None => sim_session_input(
+                &self.sim_world,
+                self.sim_session,
+                self.sim_duration,
+                self.sim_seed,
+            ),
         }
     }
 }

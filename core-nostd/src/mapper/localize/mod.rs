@@ -319,7 +319,8 @@ impl Mapper<'_> {
 
     /// Matches the keyframe just taken in the saved map: tracking or verifying against the
     /// fix, else a global search. The fix's pose, and the information of its match (world
-    /// axes), when tracking starts at this keyframe.
+    /// axes), when tracking starts at this keyframe (or, for a session extending the map,
+    /// when a keyframe tracked from the initial pose matched).
     fn relocalize(&mut self, stamp: i64, front: &FrontendStep) -> Option<(Se2, Info3)> {
         let travel = self.st.frontend.travel();
         let l = self.st.localize.as_mut()?;
@@ -404,7 +405,9 @@ impl Mapper<'_> {
             travel,
         });
         if tracking {
-            return None;
+            // Tracking from a given pose: a session extending the map joins it at the first
+            // keyframe that matched.
+            return l.then_map.then_some((estimate, information));
         }
         l.support += 1;
         if usize::from(l.support) < SUPPORT {
