@@ -647,6 +647,23 @@ fn a_saved_map_reads_back_whole_and_a_damaged_one_is_refused_with_its_reason() {
     }
 }
 
+/// Distances, ascending, from each pose of `track` stamped `from` or later to the pose of
+/// `reference` at the same time (within 0.1 s; TUM rows).
+fn distances_after(track: &[Vec<f64>], reference: &[Vec<f64>], from: f64) -> Vec<f64> {
+    let mut d: Vec<f64> = track
+        .iter()
+        .filter(|g| g[0] >= from)
+        .filter_map(|g| {
+            let m = reference
+                .iter()
+                .min_by(|a, b| (a[0] - g[0]).abs().total_cmp(&(b[0] - g[0]).abs()))?;
+            ((m[0] - g[0]).abs() < 0.1).then(|| (m[1] - g[1]).hypot(m[2] - g[2]))
+        })
+        .collect();
+    d.sort_by(f64::total_cmp);
+    d
+}
+
 #[test]
 fn a_saved_home_is_localized_in_by_another_run_from_a_given_pose_and_from_nowhere() {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -690,17 +707,7 @@ fn a_saved_home_is_localized_in_by_another_run_from_a_given_pose_and_from_nowher
         }
         // Once localized, the pose is where the map's own run was at that time (its scans
         // come within 0.1 s of each other).
-        let mut errors: Vec<f64> = gpe
-            .iter()
-            .filter(|g| g[0] >= gpe[0][0] + fix + 0.5)
-            .filter_map(|g| {
-                let m = mapped
-                    .iter()
-                    .min_by(|a, b| (a[0] - g[0]).abs().total_cmp(&(b[0] - g[0]).abs()))?;
-                ((m[0] - g[0]).abs() < 0.1).then(|| (m[1] - g[1]).hypot(m[2] - g[2]))
-            })
-            .collect();
-        errors.sort_by(f64::total_cmp);
+        let errors = distances_after(&gpe, &mapped, gpe[0][0] + fix + 0.5);
         assert!(
             errors.len() > 100,
             "{name}: {} poses compared",
@@ -752,17 +759,7 @@ fn a_later_session_extends_a_saved_home_and_saves_the_grown_map() {
     // After the join the session's poses are where the single session put them (its scans
     // come within 0.1 s of each other).
     let ours = tum_rows(&out_dir.join("trajectory.tum"));
-    let mut errors: Vec<f64> = ours
-        .iter()
-        .filter(|g| g[0] >= ours[0][0] + fix + 0.5)
-        .filter_map(|g| {
-            let m = reference
-                .iter()
-                .min_by(|a, b| (a[0] - g[0]).abs().total_cmp(&(b[0] - g[0]).abs()))?;
-            ((m[0] - g[0]).abs() < 0.1).then(|| (m[1] - g[1]).hypot(m[2] - g[2]))
-        })
-        .collect();
-    errors.sort_by(f64::total_cmp);
+    let errors = distances_after(&ours, &reference, ours[0][0] + fix + 0.5);
     assert!(errors.len() > 200, "{} poses compared", errors.len());
     let (median, worst) = (errors[errors.len() / 2], errors[errors.len() - 1]);
     eprintln!("against one session: median {median:.3} m, max {worst:.3} m");

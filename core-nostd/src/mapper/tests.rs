@@ -933,27 +933,40 @@ fn saved_first_lap() -> (Vec<u8>, f64) {
 
 /// [`saved_first_lap`] of the frames `frames`.
 fn saved_map_of(frames: core::ops::Range<usize>) -> (Vec<u8>, f64) {
-    let truth = path();
     let mut res: Box<TestResources> = Box::default();
     let mut mapper = res.mapper(config()).expect("resources fit");
     feed_frames(&mut mapper, frames, 0.0);
     mapper.request_optimization();
     while mapper.step_backend(10) != BackendStep::Idle {}
-    let map_error = mapper
+    let map_error = worst_keyframe_error(&mapper, 0);
+    (map_file_of(&mapper), map_error)
+}
+
+/// The largest error, against the truth in the map's frame (the first pose's), of the graph's
+/// keyframes from serial `first` on (stamped by their frame on the path, as `feed_visits`
+/// does).
+fn worst_keyframe_error(mapper: &Mapper<'_>, first: u32) -> f64 {
+    let truth = path();
+    mapper
         .nodes()
         .iter()
         .zip(mapper.graph().nodes())
+        .filter(|(m, _)| m.serial >= first)
         .map(|(m, n)| {
             let frame = ((m.stamp - 1_000_000_000) / 100_000_000) as usize;
             let e = truth[0].between(&truth[frame]).between(&n.pose);
             libm::hypot(e.x, e.y)
         })
-        .fold(0.0, f64::max);
-    let mut buf = std::vec![0u8; 1 << 20];
+        .fold(0.0, f64::max)
+}
+
+/// The mapper's map as a `.cloimap` file.
+fn map_file_of(mapper: &Mapper<'_>) -> Vec<u8> {
+    let mut buf = std::vec![0u8; 1 << 21];
     let mut sink: &mut [u8] = &mut buf;
     let n = mapfile::write_map(&mapper.saved_map(), &mut sink).expect("fits");
     buf.truncate(n as usize);
-    (buf, map_error)
+    buf
 }
 
 /// Localizes the second lap, from frame `start` on, in the saved first lap; the outputs and
@@ -1171,12 +1184,7 @@ fn extend_first_half_lap(initial: bool) {
     assert!(serials.windows(2).all(|w| w[0] < w[1]));
     // The map and this session's keyframes agree with the truth in the map's frame as well
     // as one session driving both laps with this odometry does (0.085 m at worst).
-    let mut worst: f64 = 0.0;
-    for (m, n) in mapper.nodes().iter().zip(mapper.graph().nodes()) {
-        let frame = ((m.stamp - 1_000_000_000) / 100_000_000) as usize;
-        let e = to_map(&truth[frame]).between(&n.pose);
-        worst = worst.max(libm::hypot(e.x, e.y));
-    }
+    let worst = worst_keyframe_error(&mapper, 0);
     assert!(
         worst < 0.08,
         "worst keyframe error {worst} m (first session {map_error} m), {c:?} {s:?}"
@@ -1187,10 +1195,8 @@ fn extend_first_half_lap(initial: bool) {
         assert!(libm::hypot(e.x, e.y) < 0.1, "frame {i}: {e:?}");
     }
     // The grown map saves and reads back whole.
-    let mut buf = std::vec![0u8; 1 << 20];
-    let mut sink: &mut [u8] = &mut buf;
-    let n = mapfile::write_map(&mapper.saved_map(), &mut sink).expect("fits");
-    let mut back: &[u8] = &buf[..n as usize];
+    let buf = map_file_of(&mapper);
+    let mut back: &[u8] = &buf;
     let again = mapfile::MapReader::open(&mut back)
         .expect("a map")
         .summary();
@@ -1226,7 +1232,6 @@ fn ten_sessions_in_a_changing_room_stay_bounded_and_right() {
     with_stack(|| {
         let truth = path();
         let lap: Vec<usize> = (0..truth.len() / 2).collect();
-        let to_map = |p: &Se2| truth[0].between(p);
         let mut map: Vec<u8> = Vec::new();
         let (mut sizes, mut errors, mut nodes) = (Vec::new(), Vec::new(), Vec::new());
         let mut pruned = 0;
@@ -1258,34 +1263,10 @@ fn ten_sessions_in_a_changing_room_stay_bounded_and_right() {
             assert_eq!(s.keyframes_dropped, 0, "session {k}: {s:?}");
             assert!(mapper.graph().node_count() <= capacity);
             pruned += s.nodes_pruned;
-            let worst = mapper
-                .nodes()
-                .iter()
-                .zip(mapper.graph().nodes())
-                .map(|(m, n)| {
-                    let frame = ((m.stamp - 1_000_000_000) / 100_000_000) as usize;
-                    let e = to_map(&truth[frame]).between(&n.pose);
-                    libm::hypot(e.x, e.y)
-                })
-                .fold(0.0, f64::max);
-            let mut buf = std::vec![0u8; 1 << 21];
-            let mut sink: &mut [u8] = &mut buf;
-            let n = mapfile::write_map(&mapper.saved_map(), &mut sink).expect("fits");
-            buf.truncate(n as usize);
-            map = buf;
-            // This session's own keyframes against the truth (the first session's are all).
-            let first = mapper.session_first_serial().unwrap_or(0);
-            let own = mapper
-                .nodes()
-                .iter()
-                .zip(mapper.graph().nodes())
-                .filter(|(m, _)| m.serial >= first)
-                .map(|(m, n)| {
-                    let frame = ((m.stamp - 1_000_000_000) / 100_000_000) as usize;
-                    let e = to_map(&truth[frame]).between(&n.pose);
-                    libm::hypot(e.x, e.y)
-                })
-                .fold(0.0, f64::max);
+            let worst = worst_keyframe_error(&mapper, 0);
+            map = map_file_of(&mapper);
+            // This session's own keyframes (the first session's are all).
+            let own = worst_keyframe_error(&mapper, mapper.session_first_serial().unwrap_or(0));
             std::eprintln!(
                 "session {k}: {} nodes, {} bytes, worst {worst:.3} m, this session's {own:.3} m",
                 mapper.graph().node_count(),
