@@ -25,7 +25,7 @@ use super::Mapper;
 use crate::frontend::csm::{search, CsmConfig, Pyramid};
 use crate::frontend::lidar::{MotionNoise, Travel};
 use crate::frontend::scan::ScanPoint;
-use crate::frontend::{align, IcpConfig, KdTree, Submap};
+use crate::frontend::{align, IcpConfig, KdTree, MatchError, Submap};
 use crate::geom::{information_in_frame_of, spd_inverse, Info3, Se2};
 use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
 use crate::storage::NodeId;
@@ -68,6 +68,21 @@ pub(crate) struct LoopState {
     unconfirmed: heapless::Vec<LoopCandidate, UNCONFIRMED>,
     /// The submap (slot and anchor serial) whose levels the pyramid storage holds.
     pub(crate) pyramid_of: Option<(u16, u32)>,
+}
+
+/// Why a match in a submap gave no pose.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum MatchMiss {
+    /// Too little of the scan falls inside the submap at the seed: no test.
+    Outside,
+    /// No pose within the window scores `min_score`: the scan does not fit the map there.
+    NoMatch,
+    /// A pose within the window scores, but the refinement cannot fix every direction (a
+    /// degenerate corridor geometry, or a refinement sliding along it beyond the shift
+    /// limit): the place fits, the pose along one direction is undetermined.
+    Unresolved,
+    /// The refined match is poor (fitness, RMS residual, too few correspondences).
+    Poor,
 }
 
 /// Which scan a loop match uses.
@@ -299,6 +314,19 @@ impl Mapper<'_> {
         window: f64,
         angle: f64,
     ) -> Option<(Se2, Matrix3<f64>)> {
+        self.try_match_in_submap(slot, source, seed, window, angle)
+            .ok()
+    }
+
+    /// [`Self::match_in_submap`], with the reason when it gives no pose.
+    pub(crate) fn try_match_in_submap(
+        &mut self,
+        slot: usize,
+        source: MatchSource,
+        seed: &Se2,
+        window: f64,
+        angle: f64,
+    ) -> Result<(Se2, Matrix3<f64>), MatchMiss> {
         let lc = self.cfg.loops;
         // Only the points that fall inside the submap at the seed take part: the others would
         // dilute the score and the fitness of a good match.
@@ -322,7 +350,7 @@ impl Mapper<'_> {
             || (self.loop_scan.len() as u32) < self.cfg.icp.min_points.min(total as u32)
         {
             self.st.stats.loops_no_match += 1;
-            return None;
+            return Err(MatchMiss::Outside);
         }
         let (submap, pyramid) = submap_and_pyramid(
             self.cells,
@@ -331,7 +359,8 @@ impl Mapper<'_> {
             &mut self.st.loops.pyramid_of,
             &self.cfg,
             slot,
-        )?;
+        )
+        .ok_or(MatchMiss::Outside)?;
         let csm = CsmConfig {
             window_xy: window,
             window_theta: angle,
@@ -340,10 +369,10 @@ impl Mapper<'_> {
         };
         let Ok(found) = search(self.loop_scan, &submap, &pyramid, seed, &csm) else {
             self.st.stats.loops_no_match += 1;
-            return None;
+            return Err(MatchMiss::NoMatch);
         };
         let n = submap.occupied_points(OCCUPIED, NORMAL_RADIUS, self.reference);
-        let tree = KdTree::build(self.reference.get_mut(..n)?);
+        let tree = KdTree::build(self.reference.get_mut(..n).ok_or(MatchMiss::Poor)?);
         let icp = IcpConfig {
             allow_degenerate: false,
             degeneracy_ratio: lc.degeneracy_ratio,
@@ -361,7 +390,10 @@ impl Mapper<'_> {
                     n
                 );
                 self.st.stats.loops_rejected += 1;
-                return None;
+                return Err(match e {
+                    MatchError::Degenerate { .. } => MatchMiss::Unresolved,
+                    _ => MatchMiss::Poor,
+                });
             }
         };
         let moved = found.pose.between(&refined.pose);
@@ -378,17 +410,23 @@ impl Mapper<'_> {
                 libm::hypot(moved.x, moved.y)
             );
             self.st.stats.loops_rejected += 1;
-            return None;
+            // A good fit that slid beyond the shift limit slid along a weak direction.
+            let good = refined.fitness >= lc.min_fitness && refined.rms <= lc.max_rms;
+            return Err(if good {
+                MatchMiss::Unresolved
+            } else {
+                MatchMiss::Poor
+            });
         }
         let [sxy, sth] = lc.min_sigma;
-        let mut cov = spd_inverse(&refined.information)?;
+        let mut cov = spd_inverse(&refined.information).ok_or(MatchMiss::Unresolved)?;
         cov[(0, 0)] += sxy * sxy;
         cov[(1, 1)] += sxy * sxy;
         cov[(2, 2)] += sth * sth;
         // The match's information is over world-axis steps of the submap frame; the loop
         // edge's residual has its translation in the measurement's frame.
-        let info = spd_inverse(&cov)?;
-        Some((refined.pose, information_in_frame_of(&info, &refined.pose)))
+        let info = spd_inverse(&cov).ok_or(MatchMiss::Unresolved)?;
+        Ok((refined.pose, information_in_frame_of(&info, &refined.pose)))
     }
 }
 

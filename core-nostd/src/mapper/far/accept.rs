@@ -5,8 +5,14 @@
 //! with the submap's free space. While the sweep runs, each following keyframe tests it:
 //! matched by the windowed search where the hypothesis and the front-end motion since put it,
 //! it supports the hypothesis when it lands there (the cycle through the two matches closes,
-//! the pairwise consistency of PCM). A swept hypothesis with enough support, spread over
-//! enough travel and submaps, becomes loop edges; one without support is dropped.
+//! the pairwise consistency of PCM), and speaks against it when its scan does not fit the map
+//! there (nothing scores, the refined match is poor, lands elsewhere, or puts walls in seen
+//! free space). A keyframe whose scan barely overlaps the submaps, or whose match fits but
+//! cannot fix every direction (a corridor's axis: the refinement is degenerate or slides), is
+//! no test either way: in a corridor every keyframe would otherwise vote against the true
+//! place. A swept hypothesis with enough support, spread over enough travel and submaps,
+//! becomes loop edges; [`REFUTE`] keyframes against it, or too much travel without
+//! confirmation, drop it.
 
 use super::{FarMatchEdge, Hypothesis, AMBIGUITY};
 use crate::frontend::far_csm::FarMatch;
@@ -14,7 +20,7 @@ use crate::frontend::scan::ScanPoint;
 use crate::frontend::Submap;
 use crate::geom::Se2;
 use crate::graph::RobustKernel;
-use crate::mapper::loops::MatchSource;
+use crate::mapper::loops::{MatchMiss, MatchSource};
 use crate::mapper::Mapper;
 
 /// Largest share of a match's points that may land where the map saw only free space (people,
@@ -33,7 +39,7 @@ pub const SUPPORT_SUBMAPS: f64 = 1.0;
 pub const SUPPORT_DISTINCT: usize = 2;
 /// Most supporting matches kept as edges.
 pub(super) const SUPPORT_EDGES: usize = 8;
-/// Tested keyframes without support that drop a hypothesis.
+/// Keyframes against a hypothesis (see the module documentation) that drop it.
 pub const REFUTE: u8 = 3;
 /// Travel after the matched keyframe within which a hypothesis must be confirmed, in submap
 /// lengths.
@@ -213,19 +219,37 @@ impl Mapper<'_> {
         if near.is_empty() {
             return;
         }
+        // A keyframe supports the hypothesis when it matches where the hypothesis puts it; it
+        // speaks against it when the scan does not fit the map there (no pose in the window
+        // scores, the refined match is poor, disagrees, or puts walls in seen free space). A
+        // place that fits but whose match cannot fix every direction (a corridor's axis) is
+        // no test: it neither supports nor refutes.
         let mut supported = false;
+        let mut against = false;
         for &(_, slot, anchor) in near.iter() {
             let Some(ga) = self.keyframe_pose(anchor) else {
                 continue;
             };
             let seed = ga.between(&predicted);
-            let Some((z, info)) =
-                self.match_in_submap(slot, MatchSource::Scan, &seed, lc.window_min, lc.angle_min)
-            else {
-                continue;
+            let (z, info) = match self.try_match_in_submap(
+                slot,
+                MatchSource::Scan,
+                &seed,
+                lc.window_min,
+                lc.angle_min,
+            ) {
+                Ok(m) => m,
+                Err(MatchMiss::NoMatch | MatchMiss::Poor) => {
+                    against = true;
+                    continue;
+                }
+                // Too little of the scan in the submap, or a fit that cannot fix every
+                // direction: no test.
+                Err(MatchMiss::Outside | MatchMiss::Unresolved) => continue,
             };
             let (inside, conflicting) = self.free_space_conflicts(slot, MatchSource::Scan, &z);
             if !consistent_with_free_space(inside, conflicting) {
+                against = true;
                 continue;
             }
             let e = seed.between(&z);
@@ -243,6 +267,8 @@ impl Mapper<'_> {
                     keep_support(&mut hyp.support, &hyp.first, edge);
                 }
                 supported = true;
+            } else {
+                against = true;
             }
         }
         let Some(hyp) = self.st.far.hypothesis.as_mut() else {
@@ -250,12 +276,12 @@ impl Mapper<'_> {
         };
         if supported {
             hyp.supporting += 1;
-        } else {
+        } else if against {
             hyp.unsupported += 1;
         }
         debug!(
-            "far hypothesis tested by keyframe {}: supported {} ({} / {})",
-            serial, supported, hyp.supporting, hyp.unsupported
+            "far hypothesis tested by keyframe {}: supported {} against {} ({} / {})",
+            serial, supported, against, hyp.supporting, hyp.unsupported
         );
         if hyp.unsupported >= REFUTE {
             refute(self);

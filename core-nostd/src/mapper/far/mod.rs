@@ -37,7 +37,8 @@
 //!    `accept::VERIFY_SUBMAPS` submaps around that place; a match there supports it (the pair
 //!    is consistent around the cycle, as in pairwise consistency maximisation).
 //!    `accept::SUPPORT` supporting keyframes spread over a submap length of travel and two
-//!    submaps confirm it; `accept::REFUTE` tested keyframes without support, or
+//!    submaps confirm it; `accept::REFUTE` keyframes whose scans do not fit there (a
+//!    corridor's sliding match is no evidence either way), or
 //!    `accept::VERIFY_SUBMAP_LENGTHS` submap lengths of travel, drop it.
 //!
 //! Tests 1, 2 and 4 and the acceptance are in module `accept`; this module plans and runs the
@@ -111,6 +112,7 @@ struct Hypothesis {
     last_band: bool,
     /// Distinct keyframes among the support.
     supporting: usize,
+    /// Keyframes whose scans spoke against it.
     unsupported: u8,
 }
 
