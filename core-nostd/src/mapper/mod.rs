@@ -541,9 +541,16 @@ impl<'r> Mapper<'r> {
     }
 
     /// Runs one back-end step: at most `config.backend.work_budget` work units of the due
-    /// optimization, whose solves run at most `iterations` Gauss-Newton iterations each; a
-    /// finished optimization chooses the GPE's anchor.
+    /// optimization, whose solves run at most `iterations` Gauss-Newton iterations each (a
+    /// finished optimization chooses the GPE's anchor), or one turn of the far loop search.
     pub fn step_backend(&mut self, iterations: u32) -> BackendStep {
+        // The far loop search and the optimizer share the back-end: while both have work they
+        // take turns. Over a known map loops close at nearly every keyframe, so an optimizer
+        // that always came first would never leave a turn to the search that finds a place
+        // after the windowed search lost it.
+        if self.st.far.takes_turn() && self.step_far() {
+            return BackendStep::Working;
+        }
         let params = self.cfg.schedule();
         let step = self
             .st
@@ -561,7 +568,7 @@ impl<'r> Mapper<'r> {
             );
             self.st.gpe.set_anchor(anchor);
         }
-        // The far loop search takes the back-end's turns the optimizer leaves idle.
+        // The far loop search also takes every turn the optimizer leaves idle.
         if step == BackendStep::Idle && self.step_far() {
             return BackendStep::Working;
         }

@@ -151,12 +151,23 @@ fn run(config: MapperConfig) -> Run {
 }
 
 fn run_probed(config: MapperConfig, probed: bool) -> Run {
-    run_with(config, probed, &|_| false)
+    run_with(config, probed, false, &|_| false)
+}
+
+/// The run with an optimization requested before every back-end step, so the optimizer
+/// always has work (as over a known map, where loops close at nearly every keyframe).
+fn run_busy(config: MapperConfig) -> Run {
+    run_with(config, false, true, &|_| false)
 }
 
 /// The run, with the odometry stream frozen (the last sample repeated) at the frames where
-/// `stalled` says so.
-fn run_with(config: MapperConfig, probed: bool, stalled: &dyn Fn(usize) -> bool) -> Run {
+/// `stalled` says so; with `busy`, an optimization is requested before every back-end step.
+fn run_with(
+    config: MapperConfig,
+    probed: bool,
+    busy: bool,
+    stalled: &dyn Fn(usize) -> bool,
+) -> Run {
     let truth = path();
     let mut res: Box<TestResources> = Box::default();
     let mut mapper = res.mapper(config).expect("resources fit");
@@ -202,6 +213,9 @@ fn run_with(config: MapperConfig, probed: bool, stalled: &dyn Fn(usize) -> bool)
             .expect("reference node");
         serial_of.push((out.reference_serial, f.between(&out.frontend)));
         outputs.push(out);
+        if busy {
+            mapper.request_optimization();
+        }
         mapper.step_backend(5);
     }
     while mapper.step_backend(10) != BackendStep::Idle {}
@@ -304,13 +318,14 @@ fn a_stalled_odometry_does_not_seed_its_hidden_turn_twice() {
             ))
         };
         let s2 = stall.clone();
-        let fixed = run_with(cfg, false, &move |i| s2.contains(&i));
+        let fixed = run_with(cfg, false, false, &move |i| s2.contains(&i));
         let s3 = stall.clone();
         let naive = run_with(
             MapperConfig {
                 stall_motion: None,
                 ..cfg
             },
+            false,
             false,
             &move |i| s3.contains(&i),
         );
@@ -345,12 +360,13 @@ fn an_odometry_one_frame_late_is_not_taken_for_a_stall() {
             turn_reseed: 0.0,
             ..config()
         };
-        let compensating = run_with(cfg, false, &move |i| i == late);
+        let compensating = run_with(cfg, false, false, &move |i| i == late);
         let plain = run_with(
             MapperConfig {
                 stall_motion: None,
                 ..cfg
             },
+            false,
             false,
             &move |i| i == late,
         );
@@ -873,6 +889,21 @@ fn a_loop_beyond_the_window_is_found_by_the_far_search_confirmed_and_closes_the_
         let d = e0.between(&e);
         assert!(libm::hypot(d.x, d.y) < 0.05, "lap closure error {d:?}");
         assert!(relative_error(&r.final_poses, &r.truth, 20) < 0.05);
+    });
+}
+
+#[test]
+fn the_far_search_closes_the_lap_while_the_optimizer_never_rests() {
+    with_stack(|| {
+        let r = run_busy(far_only(true));
+        let s = r.stats;
+        assert!(s.far_searches > 0, "{s:?}");
+        assert!(s.far_confirmed >= 1, "{s:?}");
+        let lap = r.truth.len() / 2;
+        let e0 = r.truth[0].between(&r.truth[lap]);
+        let e = r.final_poses[0].between(&r.final_poses[lap]);
+        let d = e0.between(&e);
+        assert!(libm::hypot(d.x, d.y) < 0.05, "lap closure error {d:?}");
     });
 }
 

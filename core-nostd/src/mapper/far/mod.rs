@@ -16,9 +16,12 @@
 //! level of the pyramid over the submap and the headings within the uncertainty, as
 //! Cartographer's global constraint search does), then refined like a windowed match. The
 //! search runs in the back-end's turn, at most [`STEP_BUDGET`] candidate evaluations per
-//! back-end step and only while no optimization runs, so it never delays a frame. Building a
-//! submap's search pyramid and refining a found match (the tests of module `accept`) each
-//! take a back-end turn of their own.
+//! back-end step, so it never delays a frame. It takes every turn the optimizer leaves idle
+//! and, while both have work, every other turn: over a known map loops close at nearly every
+//! keyframe and the optimizer is never idle, yet that is where a robot whose pose jumped (a
+//! sensor outage, a wheel slip) must find its place again. Building a submap's search pyramid
+//! and refining a found match (the tests of module `accept`) each take a back-end turn of
+//! their own.
 //!
 //! **Accepting a far match.** A far match is a hypothesis, not yet a constraint: an aliased
 //! place (a repeated office, a plain corridor, a new room like an old one) can match as well
@@ -141,6 +144,8 @@ pub(crate) struct FarState {
     found: Option<(u16, u32, FarMatch)>,
     /// The last turn built a search pyramid and searched nothing.
     built: bool,
+    /// The optimizer took the last back-end turn while this search had work.
+    waited: bool,
 }
 
 impl FarState {
@@ -158,6 +163,7 @@ impl FarState {
             hypothesis: None,
             found: None,
             built: false,
+            waited: false,
         }
     }
 
@@ -185,6 +191,17 @@ impl FarState {
     /// Nothing kept, planned or running.
     fn free(&self) -> bool {
         self.idle() && !self.planned
+    }
+
+    /// Whether the next back-end turn is the far search's although the optimizer has work:
+    /// the two share the back-end turn about turn while both have work (see
+    /// [`Mapper::step_backend`](crate::mapper::Mapper::step_backend)). Records that the
+    /// optimizer takes this turn otherwise.
+    pub(crate) fn takes_turn(&mut self) -> bool {
+        let has_work = !self.free() || self.hypothesis.as_ref().is_some_and(|h| !h.swept);
+        let turn = has_work && self.waited;
+        self.waited = has_work && !turn;
+        turn
     }
 }
 
