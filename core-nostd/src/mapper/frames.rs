@@ -11,7 +11,6 @@
 //! went into. The scan then updates the maps (module `submaps`).
 
 use super::{Mapper, NO_SUBMAP};
-use crate::backend::schedule::pool_nearly_full;
 use crate::frontend::lidar::{MotionNoise, Travel};
 use crate::frontend::{KeyframeConfig, KeyframeSelector};
 use crate::geom::{spd_inverse, Cov3, Info3, Se2};
@@ -140,10 +139,10 @@ impl Mapper<'_> {
         link: Link,
     ) -> Option<u32> {
         let travel = self.st.frontend.travel();
-        let n = self.graph.node_count();
+        let n = self.back.node_count();
         let edge = match link {
             Link::Odometry if n > 0 => {
-                let prev = self.meta.get(n - 1).copied()?;
+                let prev = self.back.meta(n - 1).copied()?;
                 let rel = prev.frontend.between(pose);
                 let cov = self.cfg.noise.over(&travel.since(&prev.travel));
                 Some(PoseEdge::new(
@@ -163,12 +162,12 @@ impl Mapper<'_> {
                 EdgeKind::Loop,
             )),
         };
-        if pool_nearly_full(&self.graph) {
+        if self.back.nearly_full() {
             self.prune_pool();
         }
         // Pruning renumbers the nodes: the edge joins the newest node, or the map's node, as
         // they are now.
-        let n = self.graph.node_count();
+        let n = self.back.node_count();
         let from = match link {
             Link::Odometry => n.checked_sub(1),
             Link::Map { anchor, .. } => self.node_of(anchor),
@@ -185,35 +184,26 @@ impl Mapper<'_> {
             }
             (None, _) => None,
         };
-        if n >= self.graph.node_capacity()
-            || (edge.is_some() && self.graph.edge_count() >= self.graph.edge_capacity())
-        {
+        if !self.back.has_room(edge.is_some()) {
             self.st.stats.keyframes_dropped += 1;
             return None;
         }
-        let id = self.graph.add_node(*global).ok()?;
-        if let Some(e) = edge {
-            if self.graph.add_edge(e).is_err() {
-                // Cannot happen after the capacity check; undo the node to stay consistent.
-                self.graph.truncate_nodes(n);
-                self.st.stats.keyframes_dropped += 1;
-                return None;
-            }
-        }
+        let Some(id) = self.back.add_frame_node(*global, edge) else {
+            self.st.stats.keyframes_dropped += 1;
+            return None;
+        };
         let serial = self.st.frames.next_serial;
         self.st.frames.next_serial += 1;
         self.st.stats.keyframes += 1;
-        self.st.backend.keyframe_added();
         let submap = self.submap_for(serial, pose);
-        if let Some(m) = self.meta.get_mut(id.0 as usize) {
-            *m = NodeMeta {
-                serial,
-                stamp,
-                frontend: *pose,
-                travel,
-                submap: submap.unwrap_or(NO_SUBMAP),
-            };
-        }
+        let meta = NodeMeta {
+            serial,
+            stamp,
+            frontend: *pose,
+            travel,
+            submap: submap.unwrap_or(NO_SUBMAP),
+        };
+        self.back.set_meta(id, meta);
         if let Some(slot) = submap {
             self.insert_into_submap(slot, pose);
         }

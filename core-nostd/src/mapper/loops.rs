@@ -110,7 +110,7 @@ impl Mapper<'_> {
         let Some(k) = self.node_of(serial) else {
             return 0;
         };
-        let Some(gk) = self.graph.nodes().get(k).map(|n| n.pose) else {
+        let Some(gk) = self.back.pose(k) else {
             return 0;
         };
         let lc = self.cfg.loops;
@@ -241,11 +241,10 @@ impl Mapper<'_> {
             EdgeKind::Loop,
         );
         edge.robust = robust;
-        if self.graph.add_edge(edge).is_err() {
+        if !self.back.add_loop_edge(edge) {
             return false;
         }
         self.st.stats.loop_closures += 1;
-        self.st.backend.loop_added();
         self.st.loops.at_loop = self.st.frontend.travel();
         true
     }
@@ -290,10 +289,8 @@ impl Mapper<'_> {
     /// Whether two matches against one submap agree with the front-end motion between their
     /// keyframes.
     fn loops_agree(&self, a: &LoopCandidate, b: &LoopCandidate) -> bool {
-        let (Some(ia), Some(ib)) = (self.node_of(a.serial), self.node_of(b.serial)) else {
-            return false;
-        };
-        let (Some(ma), Some(mb)) = (self.meta.get(ia), self.meta.get(ib)) else {
+        let (Some(ma), Some(mb)) = (self.back.meta_of(a.serial), self.back.meta_of(b.serial))
+        else {
             return false;
         };
         let odo = ma.frontend.between(&mb.frontend);

@@ -35,6 +35,7 @@
 //! keyframes are dropped (counted in [`MapperStats::keyframes_dropped`]) instead of failing; a
 //! full submap pool recycles the submap that newer ones cover best.
 
+mod back;
 mod cameras;
 pub mod config;
 mod far;
@@ -55,7 +56,7 @@ use crate::frontend::odometry::{OdomError, OdomIncrement, OdometryFusion};
 use crate::frontend::scan::{BeamGeometry, ScanPoint, ScanPoints};
 use crate::frontend::{preprocess, PointMap, PreprocessConfig};
 use crate::geom::Se2;
-use crate::gpe::{choose_anchor, AnchorCandidate, GpeFrame, GpeTracker, NodeTie};
+use crate::gpe::{GpeFrame, GpeTracker, NodeTie};
 use crate::graph::PoseGraph;
 use crate::solver::SolverBuffers;
 
@@ -70,6 +71,7 @@ pub use localize::{LocalizeCounters, GLOBAL_BUDGET, LOST_MISSES};
 pub use submaps::SubmapMeta;
 pub use types::{FrameOutput, MapperError, MapperStats, Probe, ScanInput, Section};
 
+use back::BackEnd;
 use frames::FrameState;
 use loops::LoopState;
 use submaps::SubmapState;
@@ -85,10 +87,27 @@ pub const ODOMETRY_HISTORY: usize = 256;
 /// `NodeMeta::submap` value of "no submap".
 pub const NO_SUBMAP: u16 = u16::MAX;
 
-/// Small mutable state of the mapper, one part per stage (kept in the resources so the mapper
-/// itself is a set of borrows).
+/// Small mutable state of the mapper, kept in the resources so the mapper itself is a set of
+/// borrows: the real-time part's and the back-end's schedule, apart so each side owns its own.
 #[derive(Clone, Debug)]
 pub struct MapperState {
+    pub(crate) rt: RealTimeState,
+    pub(crate) schedule: BackendSchedule,
+}
+
+impl MapperState {
+    /// The state before the first scan.
+    pub const fn new(keyframe: crate::frontend::KeyframeConfig) -> Self {
+        MapperState {
+            rt: RealTimeState::new(keyframe),
+            schedule: BackendSchedule::new(),
+        }
+    }
+}
+
+/// The real-time part's small state, one part per stage.
+#[derive(Clone, Debug)]
+pub(crate) struct RealTimeState {
     /// The mapper's own counters (the stages keep theirs).
     pub(crate) stats: MapperStats,
     pub(crate) last_stamp: Option<i64>,
@@ -98,15 +117,14 @@ pub struct MapperState {
     pub(crate) submaps: SubmapState,
     pub(crate) loops: LoopState,
     pub(crate) far: far::FarState,
-    pub(crate) backend: BackendSchedule,
     /// The localization-only mode's state; `None` when mapping.
     pub(crate) localize: Option<localize::LocalizeState>,
 }
 
-impl MapperState {
+impl RealTimeState {
     /// The state before the first scan.
-    pub const fn new(keyframe: crate::frontend::KeyframeConfig) -> Self {
-        MapperState {
+    pub(crate) const fn new(keyframe: crate::frontend::KeyframeConfig) -> Self {
+        RealTimeState {
             stats: MapperStats::ZERO,
             last_stamp: None,
             frontend: LidarFrontend::new(),
@@ -115,7 +133,6 @@ impl MapperState {
             submaps: SubmapState::NONE,
             loops: LoopState::new(),
             far: far::FarState::new(),
-            backend: BackendSchedule::new(),
             localize: None,
         }
     }
@@ -125,9 +142,8 @@ impl MapperState {
 /// [`MapperResources::mapper`](crate::profile::MapperResources::mapper).
 pub struct Mapper<'r> {
     pub(crate) cfg: MapperConfig,
-    pub(crate) graph: PoseGraph<'r>,
-    pub(crate) solver: SolverBuffers<'r>,
-    pub(crate) meta: &'r mut [NodeMeta],
+    /// The back-end: graph, node metadata, solver, pruning and schedule.
+    pub(crate) back: BackEnd<'r>,
     pub(crate) submaps: &'r mut [SubmapMeta],
     /// Cells of every submap, `cells_per_submap` each.
     pub(crate) cells: &'r mut [i8],
@@ -139,10 +155,9 @@ pub struct Mapper<'r> {
     pub(crate) reference: &'r mut [ScanPoint],
     pub(crate) loop_scan: &'r mut ScanPoints,
     pub(crate) odometry: &'r mut OdometryFusion<ODOMETRY_HISTORY>,
-    pub(crate) prune: PruneScratch<'r>,
     /// The camera stage's storage, when the mapper takes images.
     pub(crate) cameras: Option<CameraParts<'r>>,
-    pub(crate) st: &'r mut MapperState,
+    pub(crate) st: &'r mut RealTimeState,
 }
 
 /// The parts of the resources a mapper is assembled from (see [`Mapper::new`]).
@@ -209,8 +224,8 @@ impl<'r> MapperParts<'r> {
 impl core::fmt::Debug for Mapper<'_> {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         f.debug_struct("Mapper")
-            .field("nodes", &self.graph.node_count())
-            .field("edges", &self.graph.edge_count())
+            .field("nodes", &self.back.graph().node_count())
+            .field("edges", &self.back.graph().edge_count())
             .field("stats", &self.stats())
             .finish()
     }
@@ -244,11 +259,10 @@ impl<'r> Mapper<'r> {
                 "lengths and loop interval must be positive",
             ));
         }
+        let MapperState { rt, schedule } = parts.state;
         Ok(Mapper {
             cfg,
-            graph: parts.graph,
-            solver: parts.solver,
-            meta: parts.meta,
+            back: BackEnd::new(parts.graph, parts.solver, parts.meta, parts.prune, schedule),
             submaps: &mut parts.submaps[..n_submaps],
             cells: &mut parts.cells[..n_submaps * cells_per_submap],
             cells_per_submap,
@@ -258,9 +272,8 @@ impl<'r> Mapper<'r> {
             reference: parts.reference,
             loop_scan: parts.loop_scan,
             odometry: parts.odometry,
-            prune: parts.prune,
             cameras: parts.cameras,
-            st: parts.state,
+            st: rt,
         })
     }
 
@@ -282,7 +295,7 @@ impl<'r> Mapper<'r> {
         let g = self.st.gpe.counters();
         s.gpe_solved = g.solved;
         s.gpe_predicted = g.predicted;
-        let b = self.st.backend.counters();
+        let b = self.back.counters();
         s.backend_steps = b.steps;
         s.optimizations = b.optimizations;
         s.optimization_failures = b.failures;
@@ -291,23 +304,22 @@ impl<'r> Mapper<'r> {
 
     /// The pose graph (read-only).
     pub fn graph(&self) -> &PoseGraph<'r> {
-        &self.graph
+        self.back.graph()
     }
 
     /// Metadata of the graph's nodes (same indices as the graph).
     pub fn nodes(&self) -> &[NodeMeta] {
-        &self.meta[..self.graph.node_count()]
+        self.back.nodes()
     }
 
     /// Graph index of the keyframe `serial`, if it is in the graph.
     pub fn node_of(&self, serial: u32) -> Option<usize> {
-        frames::node_index(self.nodes(), serial)
+        self.back.node_of(serial)
     }
 
     /// Current global estimate of keyframe `serial`.
     pub fn keyframe_pose(&self, serial: u32) -> Option<Se2> {
-        let i = self.node_of(serial)?;
-        self.graph.nodes().get(i).map(|n| n.pose)
+        self.back.pose_of(serial)
     }
 
     /// The submaps in use: world pose (the anchor's estimate), parameters and cells.
@@ -493,7 +505,7 @@ impl<'r> Mapper<'r> {
     /// What the GPE needs of this frame: the front-end's result and the reference and anchor
     /// nodes.
     fn gpe_frame(&self, front: &FrontendStep, deadline_passed: bool) -> GpeFrame {
-        let reference = self.graph.node_count().checked_sub(1);
+        let reference = self.back.newest();
         let anchor = self.st.gpe.anchor().and_then(|s| self.node_of(s));
         GpeFrame {
             step: front.step,
@@ -509,9 +521,9 @@ impl<'r> Mapper<'r> {
 
     /// Node `index` as the GPE ties to it.
     fn tie(&self, index: usize) -> Option<NodeTie> {
-        let (node, meta) = (self.graph.nodes().get(index)?, self.meta.get(index)?);
+        let (estimate, meta) = (self.back.pose(index)?, self.back.meta(index)?);
         Some(NodeTie {
-            estimate: node.pose,
+            estimate,
             frontend: meta.frontend,
             travel: meta.travel,
         })
@@ -522,7 +534,7 @@ impl<'r> Mapper<'r> {
     pub fn request_optimization(&mut self) {
         // A map being localized in stays as it was saved.
         if !self.localizing() {
-            self.st.backend.loop_added();
+            self.back.request_optimization();
         }
     }
 
@@ -551,21 +563,9 @@ impl<'r> Mapper<'r> {
         if self.st.far.takes_turn() && self.step_far() {
             return BackendStep::Working;
         }
-        let params = self.cfg.schedule();
-        let step = self
-            .st
-            .backend
-            .step(&mut self.graph, &mut self.solver, &params, iterations);
+        let step = self.back.step(&self.cfg, iterations);
         if step == BackendStep::Finished {
-            let candidates = self.nodes().iter().zip(self.graph.nodes()).rev();
-            let anchor = choose_anchor(
-                candidates.map(|(m, n)| AnchorCandidate {
-                    serial: m.serial,
-                    estimate: n.pose,
-                    travel: m.travel,
-                }),
-                &self.cfg.noise,
-            );
+            let anchor = self.back.choose_anchor(&self.cfg.noise);
             self.st.gpe.set_anchor(anchor);
         }
         // The far loop search also takes every turn the optimizer leaves idle.

@@ -76,7 +76,7 @@ impl Mapper<'_> {
         if !consistent_with_free_space(inside, conflicting) {
             return;
         }
-        let Some(meta) = self.node_of(serial).and_then(|i| self.meta.get(i)) else {
+        let Some(meta) = self.back.meta_of(serial) else {
             return;
         };
         self.st.stats.far_hypotheses += 1;
@@ -170,12 +170,8 @@ impl Mapper<'_> {
         let travel = self.st.frontend.travel();
         let refute = |m: &mut Self| m.drop_hypothesis();
         let (Some(fh), Some(fs), Some(gh)) = (
-            self.node_of(first.serial)
-                .and_then(|i| self.meta.get(i))
-                .map(|m| m.frontend),
-            self.node_of(serial)
-                .and_then(|i| self.meta.get(i))
-                .map(|m| m.frontend),
+            self.back.meta_of(first.serial).map(|m| m.frontend),
+            self.back.meta_of(serial).map(|m| m.frontend),
             self.keyframe_pose(first.anchor),
         ) else {
             refute(self);

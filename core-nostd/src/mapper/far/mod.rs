@@ -222,8 +222,7 @@ impl Mapper<'_> {
         let Some(k) = self.node_of(serial) else {
             return;
         };
-        let (Some(gk), Some(meta)) = (self.graph.nodes().get(k).map(|n| n.pose), self.meta.get(k))
-        else {
+        let (Some(gk), Some(meta)) = (self.back.pose(k), self.back.meta(k)) else {
             return;
         };
         let travel = meta.travel;

@@ -111,23 +111,16 @@ impl Mapper<'_> {
     fn rebase_map(&mut self, frontend: &Se2, fix: &Se2) {
         let to_session = frontend.compose(&fix.inverse());
         let travel = self.st.frontend.travel();
-        let n = self.graph.node_count();
-        for (m, node) in self.meta.iter_mut().zip(self.graph.nodes()).take(n) {
-            m.frontend = to_session.compose(&node.pose);
+        self.back.rebase(|m, pose| {
+            m.frontend = to_session.compose(pose);
             m.travel = travel;
-        }
+        });
         for s in self.submaps.iter_mut().filter(|s| s.in_use) {
-            let Some(i) = super::super::frames::node_index(
-                self.meta.get(..n).unwrap_or_default(),
-                s.anchor_serial,
-            ) else {
+            let Some(pose) = self.back.pose_of(s.anchor_serial) else {
                 continue;
             };
-            if let (Some(m), Some(node)) = (self.meta.get(i), self.graph.nodes().get(i)) {
-                debug_assert_eq!(m.serial, s.anchor_serial);
-                s.anchor_frontend = to_session.compose(&node.pose);
-                s.anchor_travel = travel;
-            }
+            s.anchor_frontend = to_session.compose(&pose);
+            s.anchor_travel = travel;
         }
     }
 }

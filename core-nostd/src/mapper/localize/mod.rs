@@ -228,7 +228,7 @@ impl<'r> MapperParts<'r> {
         self.scan.clear();
         *self.odometry = OdometryFusion::new(config.odometry);
         *self.state = MapperState::new(config.keyframe);
-        self.state.localize = Some(LocalizeState::new(initial, then_map));
+        self.state.rt.localize = Some(LocalizeState::new(initial, then_map));
         if then_map {
             // The session's frame nodes continue the map's serials (the graph keeps its
             // nodes in serial order).
@@ -236,7 +236,7 @@ impl<'r> MapperParts<'r> {
             let next = newest
                 .and_then(|i| self.meta.get(i))
                 .map_or(0, |m| m.serial + 1);
-            self.state.frames.start_session(next);
+            self.state.rt.frames.start_session(next);
         }
         self.solver.invalidate();
         Mapper::new(config, self)

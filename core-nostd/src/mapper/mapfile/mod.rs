@@ -91,9 +91,9 @@ impl super::Mapper<'_> {
     pub fn saved_map(&self) -> MapRef<'_> {
         MapRef {
             grid: self.cfg.grid,
-            nodes: self.graph.nodes(),
+            nodes: self.back.graph().nodes(),
             meta: self.nodes(),
-            edges: self.graph.edges(),
+            edges: self.back.graph().edges(),
             submaps: self.submaps,
             cells: self.cells,
             next_serial: self.st.frames.next_serial(),

@@ -1,0 +1,217 @@
+//! The mapper's back-end (block (c) of the paper's block diagram, section III-D) as one value:
+//! the pose graph with its per-node metadata, the solver's workspace, the pruning scratch and
+//! the optimization schedule.
+//!
+//! The real-time part (front-end, GPE, frame nodes, submaps and the loop searches) reaches the
+//! back-end only through the narrow API below: it adds frame nodes with their odometry or map
+//! edge and loop edges, asks for an optimization or for room in a full pool (naming the
+//! serials that must survive the pruning), steps the optimizer, and reads node estimates and
+//! counts. Nodes are named by their keyframe serial wherever the graph's indices could have
+//! changed under a pruning in between.
+
+use super::frames::{node_index, NodeMeta};
+use super::MapperConfig;
+use crate::backend::prune::{PruneReport, PruneScratch};
+use crate::backend::schedule::{
+    make_room, pool_nearly_full, BackendCounters, BackendSchedule, BackendStep, PoolPruning,
+};
+use crate::frontend::lidar::MotionNoise;
+use crate::geom::Se2;
+use crate::gpe::{choose_anchor, AnchorCandidate};
+use crate::graph::{PoseEdge, PoseGraph};
+use crate::solver::SolverBuffers;
+use crate::storage::NodeId;
+
+/// The back-end's storage and state (see the module documentation).
+pub(crate) struct BackEnd<'r> {
+    graph: PoseGraph<'r>,
+    solver: SolverBuffers<'r>,
+    /// One entry per graph node, in the graph's order (sorted by serial).
+    meta: &'r mut [NodeMeta],
+    prune: PruneScratch<'r>,
+    schedule: &'r mut BackendSchedule,
+}
+
+impl<'r> BackEnd<'r> {
+    /// The back-end over its parts, as they are.
+    pub(crate) fn new(
+        graph: PoseGraph<'r>,
+        solver: SolverBuffers<'r>,
+        meta: &'r mut [NodeMeta],
+        prune: PruneScratch<'r>,
+        schedule: &'r mut BackendSchedule,
+    ) -> Self {
+        BackEnd {
+            graph,
+            solver,
+            meta,
+            prune,
+            schedule,
+        }
+    }
+
+    /// The pose graph (read-only).
+    pub(crate) fn graph(&self) -> &PoseGraph<'r> {
+        &self.graph
+    }
+
+    /// Metadata of the graph's nodes (same indices as the graph).
+    pub(crate) fn nodes(&self) -> &[NodeMeta] {
+        self.meta.get(..self.graph.node_count()).unwrap_or_default()
+    }
+
+    /// Nodes in the graph.
+    pub(crate) fn node_count(&self) -> usize {
+        self.graph.node_count()
+    }
+
+    /// Graph index of the keyframe `serial`, if it is in the graph.
+    pub(crate) fn node_of(&self, serial: u32) -> Option<usize> {
+        node_index(self.nodes(), serial)
+    }
+
+    /// Current estimate of the node at graph index `index`.
+    pub(crate) fn pose(&self, index: usize) -> Option<Se2> {
+        self.graph.nodes().get(index).map(|n| n.pose)
+    }
+
+    /// Metadata of the node at graph index `index`.
+    pub(crate) fn meta(&self, index: usize) -> Option<&NodeMeta> {
+        self.nodes().get(index)
+    }
+
+    /// Current estimate of the keyframe `serial`.
+    pub(crate) fn pose_of(&self, serial: u32) -> Option<Se2> {
+        self.pose(self.node_of(serial)?)
+    }
+
+    /// Metadata of the keyframe `serial`.
+    pub(crate) fn meta_of(&self, serial: u32) -> Option<&NodeMeta> {
+        self.meta(self.node_of(serial)?)
+    }
+
+    /// The newest node's graph index.
+    pub(crate) fn newest(&self) -> Option<usize> {
+        self.graph.node_count().checked_sub(1)
+    }
+
+    /// True when the next frame node might not fit the node or edge pool.
+    pub(crate) fn nearly_full(&self) -> bool {
+        pool_nearly_full(&self.graph)
+    }
+
+    /// Whether a frame node (with one edge when `with_edge`) fits the pools now.
+    pub(crate) fn has_room(&self, with_edge: bool) -> bool {
+        self.graph.node_count() < self.graph.node_capacity()
+            && (!with_edge || self.graph.edge_count() < self.graph.edge_capacity())
+    }
+
+    /// Adds a frame node at `global`, tied by `edge` (whose ends are graph indices as they are
+    /// now), and counts it towards the next optimization; its id, `None` when a pool is full
+    /// (then nothing changed). Its metadata follows with [`BackEnd::set_meta`].
+    pub(crate) fn add_frame_node(&mut self, global: Se2, edge: Option<PoseEdge>) -> Option<NodeId> {
+        let n = self.graph.node_count();
+        let id = self.graph.add_node(global).ok()?;
+        if let Some(e) = edge {
+            if self.graph.add_edge(e).is_err() {
+                self.graph.truncate_nodes(n);
+                return None;
+            }
+        }
+        self.schedule.keyframe_added();
+        Some(id)
+    }
+
+    /// Sets the metadata of the node `id`.
+    pub(crate) fn set_meta(&mut self, id: NodeId, meta: NodeMeta) {
+        if let Some(m) = self.meta.get_mut(id.0 as usize) {
+            *m = meta;
+        }
+    }
+
+    /// Adds a loop edge and asks for an optimization; whether it was added.
+    pub(crate) fn add_loop_edge(&mut self, edge: PoseEdge) -> bool {
+        if self.graph.add_edge(edge).is_err() {
+            return false;
+        }
+        self.schedule.loop_added();
+        true
+    }
+
+    /// Asks for an optimization at the next step even without new loop closures.
+    pub(crate) fn request_optimization(&mut self) {
+        self.schedule.loop_added();
+    }
+
+    /// Optimizes and prunes the graph to make room, the keyframes `protected` (serials) and
+    /// the newest `params.keep_recent` nodes exempt; the node metadata follows the graph's new
+    /// order. The pruner's report, `None` when nothing was pruned.
+    pub(crate) fn make_room(
+        &mut self,
+        params: &PoolPruning,
+        protected: impl IntoIterator<Item = u32>,
+    ) -> Option<PruneReport> {
+        let n = self.graph.node_count();
+        let nodes = self.meta.get(..n).unwrap_or_default();
+        let protected = protected.into_iter().filter_map(|s| node_index(nodes, s));
+        let report = make_room(
+            &mut self.graph,
+            &mut self.solver,
+            &mut self.prune,
+            self.schedule,
+            params,
+            protected,
+        )?;
+        // Compact the metadata like the graph: `order[i]` is node i's new index.
+        for old in 0..n {
+            let Some(&new) = self.prune.order.get(old) else {
+                break;
+            };
+            if new == u32::MAX || new as usize == old {
+                continue;
+            }
+            if let (Some(m), true) = (self.meta.get(old).copied(), (new as usize) < old) {
+                if let Some(slot) = self.meta.get_mut(new as usize) {
+                    *slot = m;
+                }
+            }
+        }
+        Some(report)
+    }
+
+    /// One step of the due optimization (see
+    /// [`BackendSchedule::step`](crate::backend::schedule::BackendSchedule::step)).
+    pub(crate) fn step(&mut self, cfg: &MapperConfig, iterations: u32) -> BackendStep {
+        let params = cfg.schedule();
+        self.schedule
+            .step(&mut self.graph, &mut self.solver, &params, iterations)
+    }
+
+    /// The GPE's anchor after an optimization: the node whose estimate agrees best with the
+    /// newest one's under the motion model.
+    pub(crate) fn choose_anchor(&self, noise: &impl MotionNoise) -> Option<u32> {
+        let candidates = self.nodes().iter().zip(self.graph.nodes()).rev();
+        choose_anchor(
+            candidates.map(|(m, n)| AnchorCandidate {
+                serial: m.serial,
+                estimate: n.pose,
+                travel: m.travel,
+            }),
+            noise,
+        )
+    }
+
+    /// Counters of the schedule.
+    pub(crate) fn counters(&self) -> BackendCounters {
+        self.schedule.counters()
+    }
+
+    /// Moves the stored front-end poses and travels of every node by `f` (a map rebased into
+    /// another session's front-end frame); `f` gets each node's metadata and estimate.
+    pub(crate) fn rebase(&mut self, mut f: impl FnMut(&mut NodeMeta, &Se2)) {
+        let n = self.graph.node_count();
+        for (m, node) in self.meta.iter_mut().zip(self.graph.nodes()).take(n) {
+            f(m, &node.pose);
+        }
+    }
+}
