@@ -16,9 +16,9 @@ use crate::backend::schedule::{
     make_room, pool_nearly_full, BackendCounters, BackendSchedule, BackendStep, PoolPruning,
 };
 use crate::frontend::lidar::MotionNoise;
-use crate::geom::Se2;
+use crate::geom::{Info3, Se2};
 use crate::gpe::{choose_anchor, AnchorCandidate};
-use crate::graph::{PoseEdge, PoseGraph};
+use crate::graph::{EdgeKind, PoseEdge, PoseGraph, RobustKernel};
 use crate::solver::SolverBuffers;
 use crate::storage::NodeId;
 
@@ -85,11 +85,6 @@ impl<'r> BackEnd<'r> {
         self.pose(self.node_of(serial)?)
     }
 
-    /// Metadata of the keyframe `serial`.
-    pub(crate) fn meta_of(&self, serial: u32) -> Option<&NodeMeta> {
-        self.meta(self.node_of(serial)?)
-    }
-
     /// The newest node's graph index.
     pub(crate) fn newest(&self) -> Option<usize> {
         self.graph.node_count().checked_sub(1)
@@ -129,8 +124,28 @@ impl<'r> BackEnd<'r> {
         }
     }
 
-    /// Adds a loop edge and asks for an optimization; whether it was added.
-    pub(crate) fn add_loop_edge(&mut self, edge: PoseEdge) -> bool {
+    /// Adds a loop edge from keyframe `anchor` to keyframe `serial` measuring `z` with `info`
+    /// and `robust`, and asks for an optimization; whether it was added (both keyframes must
+    /// be in the graph).
+    pub(crate) fn add_loop_edge(
+        &mut self,
+        anchor: u32,
+        serial: u32,
+        z: Se2,
+        info: Info3,
+        robust: RobustKernel,
+    ) -> bool {
+        let (Some(from), Some(to)) = (self.node_of(anchor), self.node_of(serial)) else {
+            return false;
+        };
+        let mut edge = PoseEdge::new(
+            NodeId(from as u32),
+            NodeId(to as u32),
+            z,
+            info,
+            EdgeKind::Loop,
+        );
+        edge.robust = robust;
         if self.graph.add_edge(edge).is_err() {
             return false;
         }

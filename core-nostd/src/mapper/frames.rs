@@ -142,7 +142,7 @@ impl Mapper<'_> {
         let n = self.back.node_count();
         let edge = match link {
             Link::Odometry if n > 0 => {
-                let prev = self.back.meta(n - 1).copied()?;
+                let prev = self.newest_node()?.tie;
                 let rel = prev.frontend.between(pose);
                 let cov = self.cfg.noise.over(&travel.since(&prev.travel));
                 Some(PoseEdge::new(
@@ -204,6 +204,7 @@ impl Mapper<'_> {
             submap: submap.unwrap_or(NO_SUBMAP),
         };
         self.back.set_meta(id, meta);
+        self.refresh_mirror();
         if let Some(slot) = submap {
             self.insert_into_submap(slot, pose);
         }

@@ -27,8 +27,7 @@ use crate::frontend::lidar::{MotionNoise, Travel};
 use crate::frontend::scan::ScanPoint;
 use crate::frontend::{align, IcpConfig, KdTree, MatchError, Submap};
 use crate::geom::{information_in_frame_of, spd_inverse, Info3, Se2};
-use crate::graph::{EdgeKind, PoseEdge, RobustKernel};
-use crate::storage::NodeId;
+use crate::graph::RobustKernel;
 
 /// Most candidates considered per keyframe before the `max_candidates` cut.
 const MAX_CANDIDATES: usize = 8;
@@ -54,6 +53,8 @@ const AGREE_PER_METRE: f64 = 0.02;
 pub(crate) struct LoopCandidate {
     slot: u16,
     serial: u32,
+    /// Front-end pose of the keyframe.
+    frontend: Se2,
     z: Se2,
     info: Info3,
 }
@@ -107,12 +108,10 @@ impl LoopState {
 impl Mapper<'_> {
     /// Searches loop closures for keyframe `serial`; returns how many were added.
     pub(crate) fn close_loops(&mut self, serial: u32) -> u8 {
-        let Some(k) = self.node_of(serial) else {
+        let Some(newest) = self.newest_if(serial) else {
             return 0;
         };
-        let Some(gk) = self.back.pose(k) else {
-            return 0;
-        };
+        let gk = newest.tie.estimate;
         let lc = self.cfg.loops;
         let travel = self.st.frontend.travel();
         let (window, angle) = self.search_window(&travel.since(&self.st.loops.at_loop));
@@ -123,7 +122,7 @@ impl Mapper<'_> {
             if !m.in_use || m.active || m.anchor_serial + lc.min_keyframe_gap > serial {
                 continue;
             }
-            let Some(ga) = self.keyframe_pose(m.anchor_serial) else {
+            let Some(ga) = m.anchor_estimate else {
                 continue;
             };
             let (window, _) = self.window_to(slot, (window, angle));
@@ -154,10 +153,7 @@ impl Mapper<'_> {
 
         let mut added = 0u8;
         for &(_, slot, anchor_serial) in candidates.iter().take(lc.max_candidates as usize) {
-            let (Some(a), Some(ga)) = (
-                self.node_of(anchor_serial),
-                self.keyframe_pose(anchor_serial),
-            ) else {
+            let Some(ga) = self.submaps.get(slot).and_then(|m| m.anchor_estimate) else {
                 continue;
             };
             self.st.stats.loop_searches += 1;
@@ -177,6 +173,7 @@ impl Mapper<'_> {
             let candidate = LoopCandidate {
                 slot: slot as u16,
                 serial,
+                frontend: newest.tie.frontend,
                 z,
                 info,
             };
@@ -211,7 +208,7 @@ impl Mapper<'_> {
             };
             let robust = RobustKernel::max_mixture_with_null(lc.null_weight, lc.null_scale);
             for c in [first, candidate] {
-                if self.add_loop_edge(a, c.serial, c.z, c.info, robust) {
+                if self.add_loop_edge(anchor_serial, c.serial, c.z, c.info, robust) {
                     added += 1;
                 }
             }
@@ -219,29 +216,18 @@ impl Mapper<'_> {
         added
     }
 
-    /// Adds a loop edge from the graph node `anchor` (a submap's anchor) to keyframe `serial`
+    /// Adds a loop edge from the keyframe `anchor` (a submap's anchor) to keyframe `serial`
     /// measuring `z` with `info`; counts it, asks for an optimization and restarts the travel
-    /// since the last loop closure. Whether it was added (the keyframe may have been pruned).
+    /// since the last loop closure. Whether it was added (a keyframe may have been pruned).
     pub(crate) fn add_loop_edge(
         &mut self,
-        anchor: usize,
+        anchor: u32,
         serial: u32,
         z: Se2,
         info: Info3,
         robust: RobustKernel,
     ) -> bool {
-        let Some(to) = self.node_of(serial) else {
-            return false;
-        };
-        let mut edge = PoseEdge::new(
-            NodeId(anchor as u32),
-            NodeId(to as u32),
-            z,
-            info,
-            EdgeKind::Loop,
-        );
-        edge.robust = robust;
-        if !self.back.add_loop_edge(edge) {
+        if !self.back.add_loop_edge(anchor, serial, z, info, robust) {
             return false;
         }
         self.st.stats.loop_closures += 1;
@@ -289,11 +275,7 @@ impl Mapper<'_> {
     /// Whether two matches against one submap agree with the front-end motion between their
     /// keyframes.
     fn loops_agree(&self, a: &LoopCandidate, b: &LoopCandidate) -> bool {
-        let (Some(ma), Some(mb)) = (self.back.meta_of(a.serial), self.back.meta_of(b.serial))
-        else {
-            return false;
-        };
-        let odo = ma.frontend.between(&mb.frontend);
+        let odo = a.frontend.between(&b.frontend);
         let e = odo.between(&a.z.between(&b.z));
         let d = libm::hypot(odo.x, odo.y);
         let lc = &self.cfg.loops;

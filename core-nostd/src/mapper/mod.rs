@@ -44,6 +44,7 @@ mod frames;
 mod localize;
 mod loops;
 pub mod mapfile;
+mod mirror;
 mod pool;
 mod submaps;
 pub mod sync;
@@ -56,7 +57,7 @@ use crate::frontend::odometry::{OdomError, OdomIncrement, OdometryFusion};
 use crate::frontend::scan::{BeamGeometry, ScanPoint, ScanPoints};
 use crate::frontend::{preprocess, PointMap, PreprocessConfig};
 use crate::geom::Se2;
-use crate::gpe::{GpeFrame, GpeTracker, NodeTie};
+use crate::gpe::{GpeFrame, GpeTracker};
 use crate::graph::PoseGraph;
 use crate::solver::SolverBuffers;
 
@@ -74,6 +75,7 @@ pub use types::{FrameOutput, MapperError, MapperStats, Probe, ScanInput, Section
 use back::BackEnd;
 use frames::FrameState;
 use loops::LoopState;
+use mirror::PoseMirror;
 use submaps::SubmapState;
 
 /// Points of the front-end's local point map.
@@ -117,6 +119,8 @@ pub(crate) struct RealTimeState {
     pub(crate) submaps: SubmapState,
     pub(crate) loops: LoopState,
     pub(crate) far: far::FarState,
+    /// The back-end's estimates the real-time part needs.
+    pub(crate) mirror: PoseMirror,
     /// The localization-only mode's state; `None` when mapping.
     pub(crate) localize: Option<localize::LocalizeState>,
 }
@@ -133,6 +137,7 @@ impl RealTimeState {
             submaps: SubmapState::NONE,
             loops: LoopState::new(),
             far: far::FarState::new(),
+            mirror: PoseMirror::EMPTY,
             localize: None,
         }
     }
@@ -260,7 +265,7 @@ impl<'r> Mapper<'r> {
             ));
         }
         let MapperState { rt, schedule } = parts.state;
-        Ok(Mapper {
+        let mut mapper = Mapper {
             cfg,
             back: BackEnd::new(parts.graph, parts.solver, parts.meta, parts.prune, schedule),
             submaps: &mut parts.submaps[..n_submaps],
@@ -274,7 +279,9 @@ impl<'r> Mapper<'r> {
             odometry: parts.odometry,
             cameras: parts.cameras,
             st: rt,
-        })
+        };
+        mapper.refresh_mirror();
+        Ok(mapper)
     }
 
     /// The configuration.
@@ -505,28 +512,19 @@ impl<'r> Mapper<'r> {
     /// What the GPE needs of this frame: the front-end's result and the reference and anchor
     /// nodes.
     fn gpe_frame(&self, front: &FrontendStep, deadline_passed: bool) -> GpeFrame {
-        let reference = self.back.newest();
-        let anchor = self.st.gpe.anchor().and_then(|s| self.node_of(s));
+        let mirror = &self.st.mirror;
+        let reference = mirror.newest;
+        let anchor = mirror
+            .anchor
+            .filter(|a| reference.is_none_or(|r| r.serial != a.serial));
         GpeFrame {
             step: front.step,
             frontend: front.pose,
             travel: self.st.frontend.travel(),
-            reference: reference.and_then(|i| self.tie(i)),
-            anchor: anchor
-                .filter(|&a| Some(a) != reference)
-                .and_then(|i| self.tie(i)),
+            reference: reference.map(|n| n.tie),
+            anchor: anchor.map(|n| n.tie),
             deadline_passed,
         }
-    }
-
-    /// Node `index` as the GPE ties to it.
-    fn tie(&self, index: usize) -> Option<NodeTie> {
-        let (estimate, meta) = (self.back.pose(index)?, self.back.meta(index)?);
-        Some(NodeTie {
-            estimate,
-            frontend: meta.frontend,
-            travel: meta.travel,
-        })
     }
 
     /// Asks for an optimization at the next back-end step even without new loop closures (e.g.
@@ -567,6 +565,9 @@ impl<'r> Mapper<'r> {
         if step == BackendStep::Finished {
             let anchor = self.back.choose_anchor(&self.cfg.noise);
             self.st.gpe.set_anchor(anchor);
+        }
+        if step != BackendStep::Idle {
+            self.refresh_mirror();
         }
         // The far loop search also takes every turn the optimizer leaves idle.
         if step == BackendStep::Idle && self.step_far() {

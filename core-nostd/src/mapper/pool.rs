@@ -23,10 +23,12 @@ impl Mapper<'_> {
             .filter(|m| m.in_use)
             .map(|m| m.anchor_serial);
         let gpe_anchor = self.st.gpe.anchor();
-        let Some(report) = self
+        let report = self
             .back
-            .make_room(&params, submap_anchors.chain(gpe_anchor))
-        else {
+            .make_room(&params, submap_anchors.chain(gpe_anchor));
+        // The optimization before the pruning moved the estimates even when nothing was pruned.
+        self.refresh_mirror();
+        let Some(report) = report else {
             return;
         };
         self.st.stats.prunes += 1;

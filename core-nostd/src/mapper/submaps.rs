@@ -38,6 +38,9 @@ pub struct SubmapMeta {
     /// Front-end travel when the submap was opened: the drift relative to the submap grows
     /// from there.
     pub anchor_travel: Travel,
+    /// The back-end's estimate of the anchor as the real-time part last saw it (module
+    /// `mirror`); `None` when the anchor is not in the graph.
+    pub anchor_estimate: Option<Se2>,
 }
 
 impl SubmapMeta {
@@ -49,6 +52,7 @@ impl SubmapMeta {
         anchor_frontend: Se2::IDENTITY,
         keyframes: 0,
         anchor_travel: Travel::ZERO,
+        anchor_estimate: None,
     };
 }
 
@@ -103,6 +107,7 @@ impl Mapper<'_> {
             anchor_frontend: *pose,
             keyframes: 0,
             anchor_travel: self.st.frontend.travel(),
+            anchor_estimate: None,
         };
         if self.st.submaps.pyramid_of == Some(slot as u16) {
             self.st.submaps.pyramid_of = None;
@@ -119,14 +124,14 @@ impl Mapper<'_> {
             if !a.in_use || a.active {
                 continue;
             }
-            let Some(pa) = self.keyframe_pose(a.anchor_serial) else {
+            let Some(pa) = a.anchor_estimate else {
                 return Some(i);
             };
             for b in self.submaps.iter() {
                 if !b.in_use || b.anchor_serial <= a.anchor_serial {
                     continue;
                 }
-                let Some(pb) = self.keyframe_pose(b.anchor_serial) else {
+                let Some(pb) = b.anchor_estimate else {
                     continue;
                 };
                 let d = libm::hypot(pa.x - pb.x, pa.y - pb.y);

@@ -76,16 +76,13 @@ impl Mapper<'_> {
         if !consistent_with_free_space(inside, conflicting) {
             return;
         }
-        let Some(meta) = self.back.meta_of(serial) else {
-            return;
-        };
         self.st.stats.far_hypotheses += 1;
         debug!(
             "far hypothesis: keyframe {} in submap {} at {} {} {}",
             serial, anchor, z.x, z.y, z.theta
         );
-        let travel = meta.travel;
-        let Some(ga) = self.keyframe_pose(anchor) else {
+        let travel = self.st.far.travel;
+        let Some(ga) = self.mirrored_pose(anchor) else {
             return;
         };
         self.st.far.hypothesis = Some(Hypothesis {
@@ -96,6 +93,7 @@ impl Mapper<'_> {
                 info,
             },
             travel,
+            frontend: self.st.far.frontend,
             support: heapless::Vec::new(),
             supporting: 0,
             unsupported: 0,
@@ -104,6 +102,7 @@ impl Mapper<'_> {
             swept: false,
             last_band: false,
         });
+        self.st.mirror.pinned = Some((anchor, Some(ga)));
         // Sweep every candidate again, from the nearest, for a distinct place that fits as
         // well.
         let far = &mut self.st.far;
@@ -162,17 +161,17 @@ impl Mapper<'_> {
     /// Tests the pending hypothesis with keyframe `serial`: matched where the hypothesis puts
     /// it, in the submaps around that place.
     pub(super) fn verify_far(&mut self, serial: u32) {
-        let Some((first, since)) = self.st.far.hypothesis.as_ref().map(|h| (h.first, h.travel))
+        let Some((first, since, fh)) =
+            (self.st.far.hypothesis.as_ref()).map(|h| (h.first, h.travel, h.frontend))
         else {
             return;
         };
         let lc = self.cfg.loops;
         let travel = self.st.frontend.travel();
         let refute = |m: &mut Self| m.drop_hypothesis();
-        let (Some(fh), Some(fs), Some(gh)) = (
-            self.back.meta_of(first.serial).map(|m| m.frontend),
-            self.back.meta_of(serial).map(|m| m.frontend),
-            self.keyframe_pose(first.anchor),
+        let (Some(fs), Some(gh)) = (
+            self.newest_if(serial).map(|n| n.tie.frontend),
+            self.mirrored_pose(first.anchor),
         ) else {
             refute(self);
             return;
@@ -193,7 +192,7 @@ impl Mapper<'_> {
             if !m.in_use || m.active || m.anchor_serial + lc.min_keyframe_gap > serial {
                 continue;
             }
-            let Some(ga) = self.keyframe_pose(m.anchor_serial) else {
+            let Some(ga) = m.anchor_estimate else {
                 continue;
             };
             let local = ga.between(&predicted);
@@ -223,7 +222,7 @@ impl Mapper<'_> {
         let mut supported = false;
         let mut against = false;
         for &(_, slot, anchor) in near.iter() {
-            let Some(ga) = self.keyframe_pose(anchor) else {
+            let Some(ga) = self.submaps.get(slot).and_then(|m| m.anchor_estimate) else {
                 continue;
             };
             let seed = ga.between(&predicted);
@@ -295,14 +294,12 @@ impl Mapper<'_> {
         let Some(h) = self.st.far.hypothesis.take() else {
             return;
         };
+        self.st.mirror.pinned = None;
         let mut added = 0u32;
         for e in core::iter::once(&h.first).chain(h.support.iter()) {
-            let Some(a) = self.node_of(e.anchor) else {
-                continue;
-            };
             // Plain least squares: the group is the evidence, and the null component of a
             // max-mixture would reject a large correction at the drifted estimate.
-            if self.add_loop_edge(a, e.serial, e.z, e.info, RobustKernel::None) {
+            if self.add_loop_edge(e.anchor, e.serial, e.z, e.info, RobustKernel::None) {
                 debug!("far loop edge: {} -> {}", e.anchor, e.serial);
                 added += 1;
             }

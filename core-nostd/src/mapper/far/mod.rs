@@ -102,8 +102,9 @@ struct Queued {
 #[derive(Clone, Debug)]
 struct Hypothesis {
     first: FarMatchEdge,
-    /// Front-end travel at the matched keyframe.
+    /// Front-end travel and pose at the matched keyframe.
     travel: Travel,
+    frontend: Se2,
     support: heapless::Vec<FarMatchEdge, SUPPORT_EDGES>,
     /// The matched keyframe's pose in the world under the hypothesis.
     world: Se2,
@@ -132,7 +133,8 @@ pub(crate) struct FarState {
     queue: heapless::Vec<Queued, PER_KEYFRAME>,
     /// The submap being searched (slot, anchor serial).
     current: Option<(u16, u32)>,
-    /// Its front-end travel.
+    /// Its front-end pose and travel.
+    frontend: Se2,
     travel: Travel,
     /// The keyframe is kept and its search is still to plan.
     planned: bool,
@@ -155,6 +157,7 @@ impl FarState {
             scan: heapless::Vec::new(),
             serial: 0,
             pose: Se2::IDENTITY,
+            frontend: Se2::IDENTITY,
             travel: Travel::ZERO,
             planned: false,
             queue: heapless::Vec::new(),
@@ -165,6 +168,12 @@ impl FarState {
             built: false,
             waited: false,
         }
+    }
+
+    /// The anchor of the pending hypothesis' first match, whose estimate the real-time part
+    /// keeps (module `mirror`).
+    pub(crate) fn pinned_serial(&self) -> Option<u32> {
+        self.hypothesis.as_ref().map(|h| h.first.anchor)
     }
 
     /// The kept keyframe scan.
@@ -219,18 +228,15 @@ impl Mapper<'_> {
         if !self.st.far.free() {
             return;
         }
-        let Some(k) = self.node_of(serial) else {
+        let Some(newest) = self.newest_if(serial) else {
             return;
         };
-        let (Some(gk), Some(meta)) = (self.back.pose(k), self.back.meta(k)) else {
-            return;
-        };
-        let travel = meta.travel;
         let far = &mut self.st.far;
         far.keep_scan(self.scan.as_slice());
         far.serial = serial;
-        far.pose = gk;
-        far.travel = travel;
+        far.pose = newest.tie.estimate;
+        far.frontend = newest.tie.frontend;
+        far.travel = newest.tie.travel;
         far.planned = true;
     }
 
@@ -263,10 +269,7 @@ impl Mapper<'_> {
                 continue;
             }
             let (radius, angle, due) = self.far_window(m);
-            let Some(ga) = self
-                .keyframe_pose(m.anchor_serial)
-                .filter(|_| due || sweeping)
-            else {
+            let Some(ga) = m.anchor_estimate.filter(|_| due || sweeping) else {
                 continue;
             };
             let d = libm::hypot(ga.x - gk.x, ga.y - gk.y);
@@ -398,7 +401,7 @@ impl Mapper<'_> {
     /// A search of the sweep finished in the submap anchored at `anchor`: a match above the
     /// sweep's threshold at a place distinct from the hypothesis' makes it ambiguous.
     fn sweep_match(&mut self, anchor: u32, found: Option<&FarMatch>) {
-        let (Some(m), Some(ga)) = (found, self.keyframe_pose(anchor)) else {
+        let (Some(m), Some(ga)) = (found, self.mirrored_pose(anchor)) else {
             return;
         };
         let Some(h) = self.st.far.hypothesis.as_ref() else {
@@ -433,6 +436,7 @@ impl Mapper<'_> {
     fn drop_hypothesis(&mut self) {
         let far = &mut self.st.far;
         far.hypothesis = None;
+        self.st.mirror.pinned = None;
         far.queue.clear();
         far.current = None;
         far.search.cancel();
@@ -456,11 +460,12 @@ impl Mapper<'_> {
             ..
         }) = self.st.far.queue.pop()
         {
-            let valid = self
+            let Some(ga) = self
                 .submaps
                 .get(slot as usize)
-                .is_some_and(|m| m.in_use && !m.active && m.anchor_serial == anchor);
-            let Some(ga) = self.keyframe_pose(anchor).filter(|_| valid) else {
+                .filter(|m| m.in_use && !m.active && m.anchor_serial == anchor)
+                .and_then(|m| m.anchor_estimate)
+            else {
                 continue;
             };
             // Over the part of the submap within the uncertainty (all of it when that is wider)

@@ -71,7 +71,7 @@ impl Mapper<'_> {
             let Some(m) = self.submaps.get(slot).filter(|m| m.in_use).copied() else {
                 continue;
             };
-            let Some(anchor) = self.keyframe_pose(m.anchor_serial) else {
+            let Some(anchor) = m.anchor_estimate else {
                 continue;
             };
             let reach = half * core::f64::consts::SQRT_2;

@@ -77,7 +77,7 @@ impl Mapper<'_> {
             .submaps
             .iter()
             .filter(|m| m.in_use)
-            .filter_map(|m| Some((m.anchor_serial, self.keyframe_pose(m.anchor_serial)?)))
+            .filter_map(|m| Some((m.anchor_serial, m.anchor_estimate?)))
             .min_by(|a, b| {
                 let da = libm::hypot(a.1.x - fix.x, a.1.y - fix.y);
                 let db = libm::hypot(b.1.x - fix.x, b.1.y - fix.y);
@@ -116,11 +116,12 @@ impl Mapper<'_> {
             m.travel = travel;
         });
         for s in self.submaps.iter_mut().filter(|s| s.in_use) {
-            let Some(pose) = self.back.pose_of(s.anchor_serial) else {
+            let Some(pose) = s.anchor_estimate else {
                 continue;
             };
             s.anchor_frontend = to_session.compose(&pose);
             s.anchor_travel = travel;
         }
+        self.refresh_mirror();
     }
 }

@@ -435,7 +435,7 @@ impl Mapper<'_> {
         // (distance to the anchor, slot, anchor pose), nearest first.
         let mut near = heapless::Vec::<(f64, usize, Se2), MAP_SUBMAPS>::new();
         for (slot, m) in self.submaps.iter().enumerate().filter(|(_, m)| m.in_use) {
-            let Some(anchor) = self.keyframe_pose(m.anchor_serial) else {
+            let Some(anchor) = m.anchor_estimate else {
                 continue;
             };
             let d = libm::hypot(anchor.x - seed.x, anchor.y - seed.y);
@@ -562,7 +562,7 @@ impl Mapper<'_> {
         };
         let n = scan.len().min(MAX_POINTS);
         for (slot, m) in self.submaps.iter().enumerate().filter(|(_, m)| m.in_use) {
-            let Some(anchor) = self.keyframe_pose(m.anchor_serial) else {
+            let Some(anchor) = m.anchor_estimate else {
                 continue;
             };
             if libm::hypot(anchor.x - world.x, anchor.y - world.y) > reach {

@@ -311,6 +311,7 @@ pub(super) fn get_submap_head(bytes: &[u8]) -> Result<(u16, SubmapMeta), MapFile
         anchor_frontend: f.se2(),
         keyframes: f.u32(),
         anchor_travel: f.travel(),
+        anchor_estimate: None,
     };
     if !(m.anchor_frontend.is_finite()
         && m.anchor_travel.path.is_finite()

@@ -101,6 +101,7 @@ fn sample() -> Owned {
             anchor_frontend: meta[anchor].frontend,
             keyframes: 4,
             anchor_travel: meta[anchor].travel,
+            anchor_estimate: None,
         };
     }
     let per = GRID.cells();
