@@ -233,8 +233,23 @@ fn budget(params: &ScheduleParams) -> u64 {
 
 /// True when the next frame node might not fit `graph`.
 pub fn pool_nearly_full(graph: &PoseGraph<'_>) -> bool {
-    graph.node_count() + 1 > graph.node_capacity()
-        || graph.edge_count() + EDGE_MARGIN > graph.edge_capacity()
+    counts_nearly_full(
+        graph.node_count(),
+        graph.node_capacity(),
+        graph.edge_count(),
+        graph.edge_capacity(),
+    )
+}
+
+/// True when the next frame node might not fit a graph of `nodes` of `node_capacity` nodes
+/// and `edges` of `edge_capacity` edges.
+pub fn counts_nearly_full(
+    nodes: usize,
+    node_capacity: usize,
+    edges: usize,
+    edge_capacity: usize,
+) -> bool {
+    nodes + 1 > node_capacity || edges + EDGE_MARGIN > edge_capacity
 }
 
 /// Optimizes and prunes `graph` to make room, `protected` (node indices) exempt; abandons

@@ -13,7 +13,7 @@ use super::frames::{node_index, NodeMeta};
 use super::MapperConfig;
 use crate::backend::prune::{PruneReport, PruneScratch};
 use crate::backend::schedule::{
-    make_room, pool_nearly_full, BackendCounters, BackendSchedule, BackendStep, PoolPruning,
+    counts_nearly_full, make_room, BackendCounters, BackendSchedule, BackendStep, PoolPruning,
 };
 use crate::frontend::lidar::MotionNoise;
 use crate::geom::{Info3, Se2};
@@ -21,6 +21,68 @@ use crate::gpe::{choose_anchor, AnchorCandidate};
 use crate::graph::{EdgeKind, PoseEdge, PoseGraph, RobustKernel};
 use crate::solver::SolverBuffers;
 use crate::storage::NodeId;
+
+/// The sizes and capacities of the graph's pools.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct GraphCounts {
+    pub(crate) nodes: usize,
+    pub(crate) node_capacity: usize,
+    pub(crate) edges: usize,
+    pub(crate) edge_capacity: usize,
+}
+
+impl GraphCounts {
+    /// No graph.
+    pub(crate) const ZERO: GraphCounts = GraphCounts {
+        nodes: 0,
+        node_capacity: 0,
+        edges: 0,
+        edge_capacity: 0,
+    };
+
+    /// True when the next frame node might not fit.
+    pub(crate) fn nearly_full(&self) -> bool {
+        counts_nearly_full(
+            self.nodes,
+            self.node_capacity,
+            self.edges,
+            self.edge_capacity,
+        )
+    }
+
+    /// Whether a frame node (with one edge when `with_edge`) fits now.
+    pub(crate) fn has_room(&self, with_edge: bool) -> bool {
+        self.nodes < self.node_capacity && (!with_edge || self.edges < self.edge_capacity)
+    }
+}
+
+/// Where the edge of a new frame node starts.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) enum EdgeFrom {
+    /// The newest node (an odometry edge).
+    Newest,
+    /// The keyframe with this serial (a match with a saved map).
+    Keyframe(u32),
+}
+
+/// The edge that ties a new frame node to the graph.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct NewEdge {
+    pub(crate) from: EdgeFrom,
+    /// Pose of the new node seen from `from`.
+    pub(crate) z: Se2,
+    pub(crate) information: Info3,
+    pub(crate) kind: EdgeKind,
+}
+
+/// Why a frame node was not added.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum AddNodeError {
+    /// The node its edge starts from is not in the graph.
+    Unlinked,
+    /// The node or edge pool is full.
+    Full,
+}
 
 /// The back-end's storage and state (see the module documentation).
 pub(crate) struct BackEnd<'r> {
@@ -60,11 +122,6 @@ impl<'r> BackEnd<'r> {
         self.meta.get(..self.graph.node_count()).unwrap_or_default()
     }
 
-    /// Nodes in the graph.
-    pub(crate) fn node_count(&self) -> usize {
-        self.graph.node_count()
-    }
-
     /// Graph index of the keyframe `serial`, if it is in the graph.
     pub(crate) fn node_of(&self, serial: u32) -> Option<usize> {
         node_index(self.nodes(), serial)
@@ -90,31 +147,60 @@ impl<'r> BackEnd<'r> {
         self.graph.node_count().checked_sub(1)
     }
 
-    /// True when the next frame node might not fit the node or edge pool.
-    pub(crate) fn nearly_full(&self) -> bool {
-        pool_nearly_full(&self.graph)
+    /// The graph's sizes and capacities.
+    pub(crate) fn counts(&self) -> GraphCounts {
+        GraphCounts {
+            nodes: self.graph.node_count(),
+            node_capacity: self.graph.node_capacity(),
+            edges: self.graph.edge_count(),
+            edge_capacity: self.graph.edge_capacity(),
+        }
     }
 
-    /// Whether a frame node (with one edge when `with_edge`) fits the pools now.
-    pub(crate) fn has_room(&self, with_edge: bool) -> bool {
-        self.graph.node_count() < self.graph.node_capacity()
-            && (!with_edge || self.graph.edge_count() < self.graph.edge_capacity())
-    }
-
-    /// Adds a frame node at `global`, tied by `edge` (whose ends are graph indices as they are
-    /// now), and counts it towards the next optimization; its id, `None` when a pool is full
-    /// (then nothing changed). Its metadata follows with [`BackEnd::set_meta`].
-    pub(crate) fn add_frame_node(&mut self, global: Se2, edge: Option<PoseEdge>) -> Option<NodeId> {
+    /// Adds a frame node at `global`, tied by `edge` to the newest node or to a keyframe, and
+    /// counts it towards the next optimization; its id. Its metadata follows with
+    /// [`BackEnd::set_meta`].
+    ///
+    /// # Errors
+    /// [`AddNodeError`]; then nothing changed.
+    pub(crate) fn add_frame_node(
+        &mut self,
+        global: Se2,
+        edge: Option<NewEdge>,
+    ) -> Result<NodeId, AddNodeError> {
         let n = self.graph.node_count();
-        let id = self.graph.add_node(global).ok()?;
+        let edge = match edge {
+            Some(e) => {
+                let from = match e.from {
+                    EdgeFrom::Newest => n.checked_sub(1),
+                    EdgeFrom::Keyframe(serial) => self.node_of(serial),
+                };
+                let from = from.ok_or(AddNodeError::Unlinked)?;
+                Some(PoseEdge::new(
+                    NodeId(from as u32),
+                    NodeId(n as u32),
+                    e.z,
+                    e.information,
+                    e.kind,
+                ))
+            }
+            None => None,
+        };
+        if !self.counts().has_room(edge.is_some()) {
+            return Err(AddNodeError::Full);
+        }
+        let id = self
+            .graph
+            .add_node(global)
+            .map_err(|_| AddNodeError::Full)?;
         if let Some(e) = edge {
             if self.graph.add_edge(e).is_err() {
                 self.graph.truncate_nodes(n);
-                return None;
+                return Err(AddNodeError::Full);
             }
         }
         self.schedule.keyframe_added();
-        Some(id)
+        Ok(id)
     }
 
     /// Sets the metadata of the node `id`.

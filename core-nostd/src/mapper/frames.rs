@@ -10,12 +10,12 @@
 //! indices change under pruning), its stamp, front-end pose and travel, and the submap its scan
 //! went into. The scan then updates the maps (module `submaps`).
 
+use super::back::{AddNodeError, EdgeFrom, NewEdge};
 use super::{Mapper, NO_SUBMAP};
 use crate::frontend::lidar::{MotionNoise, Travel};
 use crate::frontend::{KeyframeConfig, KeyframeSelector};
 use crate::geom::{spd_inverse, Cov3, Info3, Se2};
-use crate::graph::{EdgeKind, PoseEdge};
-use crate::storage::NodeId;
+use crate::graph::EdgeKind;
 
 /// What the mapper remembers about a frame node besides its pose-graph estimate.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -139,58 +139,38 @@ impl Mapper<'_> {
         link: Link,
     ) -> Option<u32> {
         let travel = self.st.frontend.travel();
-        let n = self.back.node_count();
         let edge = match link {
-            Link::Odometry if n > 0 => {
-                let prev = self.newest_node()?.tie;
-                let rel = prev.frontend.between(pose);
+            Link::Odometry => self.newest_node().map(|prev| {
+                let prev = prev.tie;
                 let cov = self.cfg.noise.over(&travel.since(&prev.travel));
-                Some(PoseEdge::new(
-                    NodeId((n - 1) as u32),
-                    NodeId(n as u32),
-                    rel,
-                    fixed_info(&cov),
-                    EdgeKind::Odometry,
-                ))
-            }
-            Link::Odometry => None,
-            Link::Map { z, information, .. } => Some(PoseEdge::new(
-                NodeId(0),
-                NodeId(n as u32),
+                NewEdge {
+                    from: EdgeFrom::Newest,
+                    z: prev.frontend.between(pose),
+                    information: fixed_info(&cov),
+                    kind: EdgeKind::Odometry,
+                }
+            }),
+            Link::Map {
+                anchor,
                 z,
                 information,
-                EdgeKind::Loop,
-            )),
+            } => Some(NewEdge {
+                from: EdgeFrom::Keyframe(anchor),
+                z,
+                information,
+                kind: EdgeKind::Loop,
+            }),
         };
-        if self.back.nearly_full() {
+        if self.st.mirror.counts.nearly_full() {
             self.prune_pool();
         }
-        // Pruning renumbers the nodes: the edge joins the newest node, or the map's node, as
-        // they are now.
-        let n = self.back.node_count();
-        let from = match link {
-            Link::Odometry => n.checked_sub(1),
-            Link::Map { anchor, .. } => self.node_of(anchor),
-        };
-        let edge = match (edge, from) {
-            (Some(e), Some(from)) => Some(PoseEdge {
-                from: NodeId(from as u32),
-                to: NodeId(n as u32),
-                ..e
-            }),
-            (Some(_), None) => {
+        // The edge joins the newest node, or the map's node, as they are after the pruning.
+        let id = match self.back.add_frame_node(*global, edge) {
+            Ok(id) => id,
+            Err(AddNodeError::Unlinked | AddNodeError::Full) => {
                 self.st.stats.keyframes_dropped += 1;
                 return None;
             }
-            (None, _) => None,
-        };
-        if !self.back.has_room(edge.is_some()) {
-            self.st.stats.keyframes_dropped += 1;
-            return None;
-        }
-        let Some(id) = self.back.add_frame_node(*global, edge) else {
-            self.st.stats.keyframes_dropped += 1;
-            return None;
         };
         let serial = self.st.frames.next_serial;
         self.st.frames.next_serial += 1;

@@ -227,7 +227,9 @@ impl Mapper<'_> {
         info: Info3,
         robust: RobustKernel,
     ) -> bool {
-        if !self.back.add_loop_edge(anchor, serial, z, info, robust) {
+        let added = self.back.add_loop_edge(anchor, serial, z, info, robust);
+        self.st.mirror.counts = self.back.counts();
+        if !added {
             return false;
         }
         self.st.stats.loop_closures += 1;

@@ -11,7 +11,11 @@
 //! is refreshed whenever the back-end's estimates or the set of these nodes change: after a
 //! back-end step that worked, after a pruning, after a new frame node and after a new anchor.
 //! A node outside these has no estimate on the real-time side.
+//!
+//! With the estimates come the graph's sizes, also refreshed after each loop edge: the
+//! real-time part decides from them whether a frame node fits or a pruning is due.
 
+use super::back::GraphCounts;
 use super::Mapper;
 use crate::geom::Se2;
 use crate::gpe::NodeTie;
@@ -33,6 +37,8 @@ pub(crate) struct PoseMirror {
     /// The anchor of a far hypothesis' first match (serial and estimate), kept while the
     /// hypothesis lives: its submap may be recycled before the following keyframes test it.
     pub(crate) pinned: Option<(u32, Option<Se2>)>,
+    /// The graph's sizes: whether a frame node fits is decided on them.
+    pub(crate) counts: GraphCounts,
 }
 
 impl PoseMirror {
@@ -41,6 +47,7 @@ impl PoseMirror {
         newest: None,
         anchor: None,
         pinned: None,
+        counts: GraphCounts::ZERO,
     };
 }
 
@@ -68,6 +75,7 @@ impl Mapper<'_> {
                 .and_then(|s| back.node_of(s))
                 .and_then(node),
             pinned: (self.st.far).pinned_serial().map(|s| (s, back.pose_of(s))),
+            counts: back.counts(),
         };
         for m in self.submaps.iter_mut() {
             m.anchor_estimate = if m.in_use {
