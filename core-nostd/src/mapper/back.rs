@@ -157,17 +157,20 @@ impl<'r> BackEnd<'r> {
         }
     }
 
-    /// Adds a frame node at `global`, tied by `edge` to the newest node or to a keyframe, and
-    /// counts it towards the next optimization; its id. Its metadata follows with
-    /// [`BackEnd::set_meta`].
+    /// Adds a frame node at `global` with its metadata `meta`, tied by `edge` to the newest
+    /// node or to a keyframe, and counts it towards the next optimization. The node and its
+    /// metadata arrive together so that the serials stay sorted at every moment (a lookup by
+    /// serial between the two would search a stale entry). Its submap follows with
+    /// [`BackEnd::set_submap`].
     ///
     /// # Errors
     /// [`AddNodeError`]; then nothing changed.
     pub(crate) fn add_frame_node(
         &mut self,
         global: Se2,
+        meta: NodeMeta,
         edge: Option<NewEdge>,
-    ) -> Result<NodeId, AddNodeError> {
+    ) -> Result<(), AddNodeError> {
         let n = self.graph.node_count();
         let edge = match edge {
             Some(e) => {
@@ -186,7 +189,7 @@ impl<'r> BackEnd<'r> {
             }
             None => None,
         };
-        if !self.counts().has_room(edge.is_some()) {
+        if !self.counts().has_room(edge.is_some()) || n >= self.meta.len() {
             return Err(AddNodeError::Full);
         }
         let id = self
@@ -199,14 +202,20 @@ impl<'r> BackEnd<'r> {
                 return Err(AddNodeError::Full);
             }
         }
-        self.schedule.keyframe_added();
-        Ok(id)
-    }
-
-    /// Sets the metadata of the node `id`.
-    pub(crate) fn set_meta(&mut self, id: NodeId, meta: NodeMeta) {
         if let Some(m) = self.meta.get_mut(id.0 as usize) {
             *m = meta;
+        }
+        self.schedule.keyframe_added();
+        Ok(())
+    }
+
+    /// Records that keyframe `serial`'s scan went into the submap in `slot`.
+    pub(crate) fn set_submap(&mut self, serial: u32, slot: u16) {
+        let n = self.graph.node_count();
+        if let Some(i) = node_index(self.nodes(), serial) {
+            if let Some(m) = self.meta.get_mut(..n).and_then(|m| m.get_mut(i)) {
+                m.submap = slot;
+            }
         }
     }
 

@@ -165,25 +165,27 @@ impl Mapper<'_> {
             self.prune_pool();
         }
         // The edge joins the newest node, or the map's node, as they are after the pruning.
-        let id = match self.back.add_frame_node(*global, edge) {
-            Ok(id) => id,
-            Err(AddNodeError::Unlinked | AddNodeError::Full) => {
-                self.st.stats.keyframes_dropped += 1;
-                return None;
-            }
-        };
         let serial = self.st.frames.next_serial;
-        self.st.frames.next_serial += 1;
-        self.st.stats.keyframes += 1;
-        let submap = self.submap_for(serial, pose);
         let meta = NodeMeta {
             serial,
             stamp,
             frontend: *pose,
             travel,
-            submap: submap.unwrap_or(NO_SUBMAP),
+            submap: NO_SUBMAP,
         };
-        self.back.set_meta(id, meta);
+        match self.back.add_frame_node(*global, meta, edge) {
+            Ok(()) => {}
+            Err(AddNodeError::Unlinked | AddNodeError::Full) => {
+                self.st.stats.keyframes_dropped += 1;
+                return None;
+            }
+        }
+        self.st.frames.next_serial += 1;
+        self.st.stats.keyframes += 1;
+        let submap = self.submap_for(serial, pose);
+        if let Some(slot) = submap {
+            self.back.set_submap(serial, slot);
+        }
         self.refresh_mirror();
         if let Some(slot) = submap {
             self.insert_into_submap(slot, pose);

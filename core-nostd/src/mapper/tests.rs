@@ -1322,3 +1322,57 @@ fn ten_sessions_in_a_changing_room_stay_bounded_and_right() {
         assert!(errors.iter().all(|&e| e < 0.2), "worst errors {errors:?}");
     });
 }
+
+/// A new submap recycles a finished one, never the one the robot has just left: that one holds
+/// the newest scans of the place, and the local map refills from it. The case that needs care:
+/// the LiDAR goes silent right after a submap was opened, so the submap left has a single
+/// keyframe, the newest node of the graph.
+#[test]
+fn a_new_submap_never_recycles_the_one_just_left() {
+    with_stack(|| {
+        type FewSubmaps = MapperResources<512, 1536, 4, { 82 * 82 }, 8192>;
+        let mut res: Box<FewSubmaps> = Box::default();
+        let mut mapper = res.mapper(config()).expect("resources fit");
+        let (mut silent_until, mut outages, mut checked) = (0, 0, 0);
+        for (i, p) in path().iter().enumerate() {
+            let t = 1_000_000_000 + i as i64 * 100_000_000;
+            mapper.push_odometry(t, *p).expect("odometry");
+            if i < silent_until {
+                continue;
+            }
+            let left = mapper
+                .st
+                .submaps
+                .active
+                .map(|s| (s, mapper.submaps[s as usize].anchor_serial));
+            let ranges = scan_at(p);
+            let scan = ScanInput {
+                stamp: t,
+                ranges: &ranges,
+                geometry: geometry(),
+                mounting: Se2::IDENTITY,
+            };
+            mapper.push_scan(&scan, false).expect("scan");
+            mapper.step_backend(5);
+            let now =
+                (mapper.st.submaps.active).map(|s| (s, mapper.submaps[s as usize].anchor_serial));
+            let Some((slot, anchor)) = left.filter(|l| Some(*l) != now) else {
+                continue;
+            };
+            checked += 1;
+            let m = &mapper.submaps[slot as usize];
+            assert!(
+                m.in_use && m.anchor_serial == anchor,
+                "scan {i}: the submap of keyframe {anchor} just left was recycled"
+            );
+            // A submap was just opened: once the pool recycles, the LiDAR goes silent for
+            // 3 m of travel, longer than a submap.
+            if mapper.stats().submaps_recycled > 0 && outages < 3 {
+                outages += 1;
+                silent_until = i + 60;
+            }
+        }
+        let s = mapper.stats();
+        assert_eq!(outages, 3, "{checked} submaps left: {s:?}");
+    });
+}
