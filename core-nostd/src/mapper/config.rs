@@ -327,6 +327,12 @@ impl MapperConfig {
     /// The `airport` profile (a guide robot in a hall, [`crate::profile::AIRPORT`]): 10 m
     /// submaps at 10 cm, scans voxelised at 10 cm, a keyframe every 0.5 m and a 1 m pruning
     /// cell, so that the graph of a 60,000 m^2 hall fits the profile's pools.
+    ///
+    /// The local point map restarts from the current scan, not from the submaps' cells: a
+    /// 30 m LiDAR's own scan already covers the area around the robot, while 10 cm cells of
+    /// a wall at a slant to the grid form a staircase whose cell centres leave the heading
+    /// nearly free and tilt it where two submaps meet; along a hall's one visible wall that
+    /// drifts the heading by a few hundredths of a degree per scan (`docs/benchmarks.md`).
     pub fn airport() -> Self {
         let base = MapperConfig::office();
         MapperConfig {
@@ -347,6 +353,7 @@ impl MapperConfig {
                 prune_cell: 1.0,
                 ..base.backend
             },
+            local_from_submaps: false,
             ..base
         }
     }
