@@ -96,6 +96,26 @@ fn scan_in(walls: &[[f64; 4]], pose: &Se2) -> Vec<f32> {
         .collect()
 }
 
+/// Feeds frame `i` of the path at its true pose `p`: exact odometry, then the scan of the room
+/// from there; the frame's output.
+fn push_true_frame(
+    mapper: &mut Mapper<'_>,
+    i: usize,
+    p: &Se2,
+    deadline_passed: bool,
+) -> FrameOutput {
+    let t = 1_000_000_000 + i as i64 * 100_000_000;
+    mapper.push_odometry(t, *p).expect("odometry");
+    let ranges = scan_at(p);
+    let scan = ScanInput {
+        stamp: t,
+        ranges: &ranges,
+        geometry: geometry(),
+        mounting: Se2::IDENTITY,
+    };
+    mapper.push_scan(&scan, deadline_passed).expect("scan")
+}
+
 /// Ground-truth poses at 10 Hz: two laps around the central box.
 fn path() -> Vec<Se2> {
     let corners = [(1.5, 1.2), (6.5, 1.2), (6.5, 4.6), (1.5, 4.6)];
@@ -497,20 +517,7 @@ fn worst_case_prediction_when_the_deadline_passes() {
         let truth = path();
         let mut last = None;
         for (i, p) in truth.iter().take(40).enumerate() {
-            let t = 1_000_000_000 + i as i64 * 100_000_000;
-            mapper.push_odometry(t, *p).expect("odometry");
-            let ranges = scan_at(p);
-            let out = mapper
-                .push_scan(
-                    &ScanInput {
-                        stamp: t,
-                        ranges: &ranges,
-                        geometry: geometry(),
-                        mounting: Se2::IDENTITY,
-                    },
-                    i % 3 == 2,
-                )
-                .expect("scan");
+            let out = push_true_frame(&mut mapper, i, p, i % 3 == 2);
             if let Some(prev) = last {
                 let prev: FrameOutput = prev;
                 if i % 3 == 2 {
@@ -537,16 +544,7 @@ fn full_pools_drop_keyframes_without_failing() {
         };
         let mut mapper = res.mapper(cfg).expect("resources fit");
         for (i, p) in path().iter().take(200).enumerate() {
-            let t = 1_000_000_000 + i as i64 * 100_000_000;
-            mapper.push_odometry(t, *p).expect("odometry");
-            let ranges = scan_at(p);
-            let scan = ScanInput {
-                stamp: t,
-                ranges: &ranges,
-                geometry: geometry(),
-                mounting: Se2::IDENTITY,
-            };
-            mapper.push_scan(&scan, false).expect("scan");
+            push_true_frame(&mut mapper, i, p, false);
             mapper.step_backend(3);
         }
         let s = mapper.stats();
@@ -583,16 +581,7 @@ fn a_full_pool_is_pruned_and_mapping_goes_on() {
         let truth = path();
         let mut keyframe_truth = Vec::new();
         for (i, p) in truth.iter().enumerate() {
-            let t = 1_000_000_000 + i as i64 * 100_000_000;
-            mapper.push_odometry(t, *p).expect("odometry");
-            let ranges = scan_at(p);
-            let scan = ScanInput {
-                stamp: t,
-                ranges: &ranges,
-                geometry: geometry(),
-                mounting: Se2::IDENTITY,
-            };
-            let out = mapper.push_scan(&scan, false).expect("scan");
+            let out = push_true_frame(&mut mapper, i, p, false);
             if out.keyframe {
                 keyframe_truth.push(*p);
             }
@@ -1335,9 +1324,9 @@ fn a_new_submap_never_recycles_the_one_just_left() {
         let mut mapper = res.mapper(config()).expect("resources fit");
         let (mut silent_until, mut outages, mut checked) = (0, 0, 0);
         for (i, p) in path().iter().enumerate() {
-            let t = 1_000_000_000 + i as i64 * 100_000_000;
-            mapper.push_odometry(t, *p).expect("odometry");
             if i < silent_until {
+                let t = 1_000_000_000 + i as i64 * 100_000_000;
+                mapper.push_odometry(t, *p).expect("odometry");
                 continue;
             }
             let left = mapper
@@ -1345,14 +1334,7 @@ fn a_new_submap_never_recycles_the_one_just_left() {
                 .submaps
                 .active
                 .map(|s| (s, mapper.submaps[s as usize].anchor_serial));
-            let ranges = scan_at(p);
-            let scan = ScanInput {
-                stamp: t,
-                ranges: &ranges,
-                geometry: geometry(),
-                mounting: Se2::IDENTITY,
-            };
-            mapper.push_scan(&scan, false).expect("scan");
+            push_true_frame(&mut mapper, i, p, false);
             mapper.step_backend(5);
             let now =
                 (mapper.st.submaps.active).map(|s| (s, mapper.submaps[s as usize].anchor_serial));
