@@ -178,17 +178,10 @@ fn a_home_whose_lidar_fails_for_100_s_is_joined_again_by_the_far_search() {
 
 /// Headings of a TUM file (stamp, yaw), in file order.
 fn headings(path: &Path) -> Vec<(f64, f64)> {
-    std::fs::read_to_string(path)
+    cloi_host::io::tum::read_tum(path)
         .expect("tum")
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let f: Vec<f64> = l
-                .split_whitespace()
-                .map(|x| x.parse().expect("number"))
-                .collect();
-            (f[0], 2.0 * f[6].atan2(f[7]))
-        })
+        .iter()
+        .map(|p| (p.t, p.q.euler_angles().2))
         .collect()
 }
 

@@ -231,16 +231,6 @@ fn budget(params: &ScheduleParams) -> u64 {
     }
 }
 
-/// True when the next frame node might not fit `graph`.
-pub fn pool_nearly_full(graph: &PoseGraph<'_>) -> bool {
-    counts_nearly_full(
-        graph.node_count(),
-        graph.node_capacity(),
-        graph.edge_count(),
-        graph.edge_capacity(),
-    )
-}
-
 /// True when the next frame node might not fit a graph of `nodes` of `node_capacity` nodes
 /// and `edges` of `edge_capacity` edges.
 pub fn counts_nearly_full(

@@ -211,11 +211,8 @@ impl<'r> BackEnd<'r> {
 
     /// Records that keyframe `serial`'s scan went into the submap in `slot`.
     pub(crate) fn set_submap(&mut self, serial: u32, slot: u16) {
-        let n = self.graph.node_count();
-        if let Some(i) = node_index(self.nodes(), serial) {
-            if let Some(m) = self.meta.get_mut(..n).and_then(|m| m.get_mut(i)) {
-                m.submap = slot;
-            }
+        if let Some(m) = self.node_of(serial).and_then(|i| self.meta.get_mut(i)) {
+            m.submap = slot;
         }
     }
 

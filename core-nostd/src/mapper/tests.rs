@@ -96,6 +96,16 @@ fn scan_in(walls: &[[f64; 4]], pose: &Se2) -> Vec<f32> {
         .collect()
 }
 
+/// The scan `ranges` stamped `t`, with the test geometry and no mounting.
+fn scan_input(ranges: &[f32], t: i64) -> ScanInput<'_> {
+    ScanInput {
+        stamp: t,
+        ranges,
+        geometry: geometry(),
+        mounting: Se2::IDENTITY,
+    }
+}
+
 /// Feeds frame `i` of the path at its true pose `p`: exact odometry, then the scan of the room
 /// from there; the frame's output.
 fn push_true_frame(
@@ -107,12 +117,7 @@ fn push_true_frame(
     let t = 1_000_000_000 + i as i64 * 100_000_000;
     mapper.push_odometry(t, *p).expect("odometry");
     let ranges = scan_at(p);
-    let scan = ScanInput {
-        stamp: t,
-        ranges: &ranges,
-        geometry: geometry(),
-        mounting: Se2::IDENTITY,
-    };
+    let scan = scan_input(&ranges, t);
     mapper.push_scan(&scan, deadline_passed).expect("scan")
 }
 
@@ -211,12 +216,7 @@ fn run_with(
             .push_odometry(t, reported)
             .expect("odometry in order");
         let ranges = scan_at(p);
-        let input = ScanInput {
-            stamp: t,
-            ranges: &ranges,
-            geometry: geometry(),
-            mounting: Se2::IDENTITY,
-        };
+        let input = scan_input(&ranges, t);
         let out = if probed {
             let mut rec = Recorder::default();
             let out = mapper.push_scan_probed(&input, false, &mut rec);
@@ -444,12 +444,7 @@ fn bad_scans_are_rejected_and_counted() {
             .push_odometry(1_000, Se2::IDENTITY)
             .expect("odometry");
         let good = scan_at(&pose);
-        let scan = |stamp, ranges| ScanInput {
-            stamp,
-            ranges,
-            geometry: geometry(),
-            mounting: Se2::IDENTITY,
-        };
+        let scan = |stamp, ranges| scan_input(ranges, stamp);
         assert!(mapper.push_scan(&scan(1_000, &good), false).is_ok());
         // Going back in time, or repeating the stamp.
         assert_eq!(
@@ -615,16 +610,6 @@ fn a_full_pool_is_pruned_and_mapping_goes_on() {
 
 const MS: i64 = 1_000_000;
 
-/// A scan of the world from `pose` stamped `t`.
-fn held_input(ranges: &[f32], t: i64) -> ScanInput<'_> {
-    ScanInput {
-        stamp: t,
-        ranges,
-        geometry: geometry(),
-        mounting: Se2::IDENTITY,
-    }
-}
-
 #[test]
 fn a_scan_before_its_odometry_is_held_then_released_covered() {
     with_stack(|| {
@@ -638,7 +623,7 @@ fn a_scan_before_its_odometry_is_held_then_released_covered() {
             .expect("odometry");
         // The first scan: odometry at 0 does not cover 50 ms, so it waits.
         assert_eq!(
-            feeder.scan(&mut mapper, &held_input(&ranges, 50 * MS), None, false),
+            feeder.scan(&mut mapper, &scan_input(&ranges, 50 * MS), None, false),
             None
         );
         assert_eq!(feeder.held(), 1);
@@ -655,7 +640,7 @@ fn a_scan_before_its_odometry_is_held_then_released_covered() {
         assert_eq!(feeder.held(), 0);
         // Covered on arrival: straight through.
         let p = feeder
-            .scan(&mut mapper, &held_input(&ranges, 90 * MS), None, false)
+            .scan(&mut mapper, &scan_input(&ranges, 90 * MS), None, false)
             .expect("pushed at once");
         assert_eq!(p.stamp, 90 * MS);
         assert!(p.result.is_ok());
@@ -699,7 +684,7 @@ fn bag_order_run(gated: bool) -> (Vec<FrameOutput>, Vec<Se2>, MapperStats, u64) 
             }
         } else if j % 2 == 1 {
             let ranges = scan_at(p);
-            let input = held_input(&ranges, t);
+            let input = scan_input(&ranges, t);
             scanned.push(*p);
             if gated {
                 let pushed = feeder.scan(&mut mapper, &input, None, false);
@@ -769,7 +754,7 @@ fn a_full_queue_evicts_the_oldest_and_counts_it() {
             .expect("odometry");
         // SYNC_SLOTS scans 10 ms apart, well inside the wait: all held.
         for k in 1..=SYNC_SLOTS as i64 {
-            let p = feeder.scan(&mut mapper, &held_input(&ranges, k * 10 * MS), None, false);
+            let p = feeder.scan(&mut mapper, &scan_input(&ranges, k * 10 * MS), None, false);
             assert_eq!(p, None);
             assert_eq!(feeder.next(&mut mapper, false), None);
         }
@@ -777,7 +762,7 @@ fn a_full_queue_evicts_the_oldest_and_counts_it() {
         // One more: the oldest goes now, uncovered, and is counted.
         let t = (SYNC_SLOTS as i64 + 1) * 10 * MS;
         let p = feeder
-            .scan(&mut mapper, &held_input(&ranges, t), None, false)
+            .scan(&mut mapper, &scan_input(&ranges, t), None, false)
             .expect("the oldest is pushed");
         assert_eq!(p.stamp, 10 * MS);
         assert!(p.result.is_ok());
@@ -786,7 +771,7 @@ fn a_full_queue_evicts_the_oldest_and_counts_it() {
         // A scan that must wait but has more beams than a slot is rejected and counted.
         let long = [1.0f32; crate::frontend::scan::MAX_POINTS + 1];
         let p = feeder
-            .scan(&mut mapper, &held_input(&long, t + 10 * MS), None, false)
+            .scan(&mut mapper, &scan_input(&long, t + 10 * MS), None, false)
             .expect("rejected at once");
         assert_eq!(p.result, Err(MapperError::TooManyBeams));
         assert_eq!(feeder.sync_stats().too_long, 1);
@@ -815,20 +800,20 @@ fn a_scan_whose_odometry_never_comes_goes_after_the_wait() {
             .odometry(&mut mapper, 0, Se2::IDENTITY)
             .expect("odometry");
         assert_eq!(
-            feeder.scan(&mut mapper, &held_input(&ranges, 10 * MS), None, false),
+            feeder.scan(&mut mapper, &scan_input(&ranges, 10 * MS), None, false),
             None
         );
         // Data time reaches the wait exactly: not yet.
         let at_wait = 10 * MS + SYNC_WAIT_NS;
         assert_eq!(
-            feeder.scan(&mut mapper, &held_input(&ranges, at_wait), None, false),
+            feeder.scan(&mut mapper, &scan_input(&ranges, at_wait), None, false),
             None
         );
         assert_eq!(feeder.next(&mut mapper, false), None);
         // Past it: the first goes without cover (counted), the second still waits.
         let past = at_wait + MS;
         assert_eq!(
-            feeder.scan(&mut mapper, &held_input(&ranges, past), None, false),
+            feeder.scan(&mut mapper, &scan_input(&ranges, past), None, false),
             None
         );
         let p = feeder
@@ -932,12 +917,7 @@ fn feed_visits_in(
         let t = 1_000_000_000 + (frames[0] + k) as i64 * 100_000_000;
         mapper.push_odometry(t, odom).expect("odometry in order");
         let ranges = scan_in(walls, &truth[i]);
-        let input = ScanInput {
-            stamp: t,
-            ranges: &ranges,
-            geometry: geometry(),
-            mounting: Se2::IDENTITY,
-        };
+        let input = scan_input(&ranges, t);
         outputs.push(mapper.push_scan(&input, false).expect("scan accepted"));
         mapper.step_backend(5);
     }
@@ -1133,12 +1113,7 @@ fn a_lidar_alone_maps_the_laps_seeded_by_its_own_motion() {
         let mut rt = Vec::new();
         for (i, p) in truth.iter().enumerate() {
             let ranges = scan_at(p);
-            let input = ScanInput {
-                stamp: 1_000_000_000 + i as i64 * 100_000_000,
-                ranges: &ranges,
-                geometry: geometry(),
-                mounting: Se2::IDENTITY,
-            };
+            let input = scan_input(&ranges, 1_000_000_000 + i as i64 * 100_000_000);
             rt.push(mapper.push_scan(&input, false).expect("scan accepted").pose);
             mapper.step_backend(5);
         }
