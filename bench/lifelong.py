@@ -12,10 +12,14 @@ final trajectory (`trajectory.tum`) and real-time poses (`gpe.tum`): after its o
 (how good the session's map is) and in the frame fitted to session 0 (whether the map stays
 where it was). With `--fresh` each session's bag is also mapped alone, for comparison.
 
+With `--cycle N` the world keeps changing for as many sessions as asked: session k >= 1 is the
+world of session ((k - 1) mod N) + 1, so the N sets of changes come and go again (a door that
+closes is opened, furniture moves back), as in a home over months.
+
 The seeds (SEED0 + k) were fixed before any result was seen.
 
-    bench/lifelong.py [--world home] [--sessions 10] [--laps 1 | --duration S] [--fresh]
-        [--out DIR] [--bin target/release/cloi] [--png FILE]
+    bench/lifelong.py [--world home] [--sessions 10] [--laps 1 | --duration S] [--cycle N]
+        [--fresh] [--out DIR] [--bin target/release/cloi] [--png FILE]
 """
 
 import argparse
@@ -61,6 +65,7 @@ def main():
     ap.add_argument("--sessions", type=int, default=10)
     ap.add_argument("--laps", type=int, default=1)
     ap.add_argument("--duration", type=float, help="seconds per session instead of --laps")
+    ap.add_argument("--cycle", type=int, help="repeat the world's first N sets of changes")
     ap.add_argument("--fresh", action="store_true", help="also map each session's bag alone")
     ap.add_argument("--out", default="target/bench-lifelong")
     ap.add_argument("--bin", default="target/release/cloi")
@@ -72,7 +77,8 @@ def main():
     for k in range(a.sessions):
         d = os.path.join(a.out, f"s{k}")
         bag = f"{d}.mcap"
-        run([a.bin, "sim", "--world", a.world, "--session", str(k), "--seed", str(SEED0 + k),
+        world = (k - 1) % a.cycle + 1 if a.cycle and k > 0 else k
+        run([a.bin, "sim", "--world", a.world, "--session", str(world), "--seed", str(SEED0 + k),
              "--sensors", "L", "--quiet", "--out", bag] + length)
         cmap = f"{d}.cloimap"
         cmd = [a.bin, "map", bag, "--deterministic", "--quiet", "--save", cmap, "--out", d]
@@ -91,6 +97,7 @@ def main():
         shown = json.loads(run([a.bin, "show-map", cmap]).stdout)
         row = {
             "session": k,
+            "world": world,
             "fix_s": (r.get("localization") or {}).get("time_to_first_fix_s"),
             "joined": (r.get("session") or {}).get("joined", k == 0),
             "nodes": shown["nodes"],

@@ -244,3 +244,102 @@ fn the_guide_robots_heading_holds_along_one_long_wall() {
     assert!(estimate.len() > 900, "{} scans mapped", estimate.len());
     assert!(worst <= 2.0, "real-time heading off by {worst:.2} deg");
 }
+
+/// One mapping session of the lifelong soak: session `k` of `sessions` driven in the home's
+/// world `world` (its changes up to it applied) for 600 s, extending the map of session
+/// `k - 1` (`cloi map --load`) and saved for the next. Returns the final ATE RMSE, the saved
+/// map's size in bytes and the run's report.
+fn soak_session(k: u32, world: u32, dir: &Path) -> (f64, u64, serde_json::Value) {
+    let path = |name: String| dir.join(name).to_str().expect("utf-8").to_owned();
+    let bag = path(format!("s{k}.mcap"));
+    let (world, seed) = (world.to_string(), (100 + k).to_string());
+    cloi(&[
+        "sim",
+        "--world",
+        "home",
+        "--session",
+        &world,
+        "--seed",
+        &seed,
+        "--sensors",
+        "L",
+        "--duration",
+        "600",
+        "--quiet",
+        "--out",
+        &bag,
+    ]);
+    let (map, out) = (path(format!("s{k}.cloimap")), path(format!("s{k}")));
+    let mut args = vec![
+        "-q",
+        "map",
+        &bag,
+        "--deterministic",
+        "--save",
+        &map,
+        "--out",
+        &out,
+    ];
+    let previous = path(format!("s{}.cloimap", k.saturating_sub(1)));
+    if k == 0 {
+        args.extend(["--profile", "home"]);
+    } else {
+        args.extend(["--load", &previous, "--initial-pose", "0,0,0"]);
+    }
+    cloi(&args);
+    std::fs::remove_file(&bag).expect("the session's bag");
+    let out = Path::new(&out);
+    let ate = ate_rmse(
+        &out.join("trajectory.tum"),
+        &dir.join(format!("s{k}.gt.tum")),
+    );
+    let bytes = std::fs::metadata(&map).expect("the saved map").len();
+    let report =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).expect("report"))
+            .expect("json");
+    (ate, bytes, report)
+}
+
+/// The CI cut of the lifelong soak (`bench/lifelong.py --sessions 100 --duration 600 --cycle
+/// 3`, issue 17): ten sessions of ten minutes in the home, each extending the map the one
+/// before saved, while the home's three sets of changes (furniture moved, a door closed,
+/// clutter) come and go. Ten sessions fill the home profile's node pool once, so the graph is
+/// pruned on the way. Every session joins the saved map, no keyframe is dropped for want of
+/// room, the pruning shrinks the saved file, no session fails (final ATE above 0.3 m), and the
+/// last session is no worse than 1.2 times the first that extended a map (session 1; session
+/// 0 maps an empty world from scratch and is not the same kind of run).
+#[test]
+fn a_home_mapped_in_ten_sessions_stays_bounded_and_right() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let mut sessions = Vec::new();
+    for k in 0..10u32 {
+        let world = if k == 0 { 0 } else { (k - 1) % 3 + 1 };
+        let (ate, bytes, r) = soak_session(k, world, tmp.path());
+        let m = &r["mapper"];
+        let count = |key: &str| m[key].as_u64().unwrap_or_else(|| panic!("{key}: {m:#}"));
+        let (prunes, dropped) = (count("prunes"), count("keyframes_dropped"));
+        println!(
+            "session {k} (world {world}): final ATE RMSE {ate:.3} m, map file {bytes} B, \
+             prunes {prunes}, keyframes dropped {dropped}"
+        );
+        if k > 0 {
+            assert_eq!(r["session"]["joined"].as_bool(), Some(true), "session {k}");
+        }
+        assert_eq!(dropped, 0, "session {k} dropped keyframes");
+        assert!(ate <= 0.3, "session {k} failed: final ATE RMSE {ate} m");
+        sessions.push((ate, bytes, prunes));
+    }
+    let pruned: Vec<usize> = (1..sessions.len()).filter(|&k| sessions[k].2 > 0).collect();
+    assert!(!pruned.is_empty(), "the pool never filled: {sessions:?}");
+    for &k in &pruned {
+        assert!(
+            sessions[k].1 < sessions[k - 1].1,
+            "session {k} pruned but its map grew: {sessions:?}"
+        );
+    }
+    let (first, last) = (sessions[1].0, sessions[sessions.len() - 1].0);
+    assert!(
+        last <= 1.2 * first,
+        "session 9's final ATE {last} m against session 1's {first} m"
+    );
+}
