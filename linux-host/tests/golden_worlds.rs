@@ -245,8 +245,8 @@ fn the_guide_robots_heading_holds_along_one_long_wall() {
     assert!(worst <= 2.0, "real-time heading off by {worst:.2} deg");
 }
 
-/// One mapping session of the lifelong soak: session `k` of `sessions` driven in the home's
-/// world `world` (its changes up to it applied) for 600 s, extending the map of session
+/// One mapping session of the lifelong soak: session `k` driven in the home's world of
+/// session `world` (its changes up to it applied) for 600 s, extending the map of session
 /// `k - 1` (`cloi map --load`) and saved for the next. Returns the final ATE RMSE, the saved
 /// map's size in bytes and the run's report.
 fn soak_session(k: u32, world: u32, dir: &Path) -> (f64, u64, serde_json::Value) {
