@@ -31,10 +31,12 @@ use crate::graph::RobustKernel;
 
 /// Most candidates considered per keyframe before the `max_candidates` cut.
 const MAX_CANDIDATES: usize = 8;
-/// Occupied cells for the refinement: log-odds units at least this (probability ~0.73).
-const OCCUPIED: i8 = 10;
-/// Radius, in cells, of the normal fit of the refinement's reference points.
-const NORMAL_RADIUS: u8 = 2;
+/// Occupied cells a scan is refined against, here and in a saved map (`localize`): log-odds
+/// units at least this (probability ~0.73).
+pub(in crate::mapper) const OCCUPIED: i8 = 10;
+/// Radius, in cells, of the normal fit of points taken from a submap's cells (the
+/// refinement's reference, a saved map's, a restarted local map's).
+pub(in crate::mapper) const NORMAL_RADIUS: u8 = 2;
 /// Matches waiting for confirmation (one per submap, the oldest dropped when full).
 const UNCONFIRMED: usize = 4;
 /// Share of the scan (one in this many points) that must fall inside the submap at the seed.

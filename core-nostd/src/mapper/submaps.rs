@@ -12,13 +12,12 @@
 //! restarted, refilled (with `local_from_submaps`) from the occupied cells of the two newest
 //! submaps, so the front-end keeps matching against the recent past instead of a single scan.
 
+use super::loops::NORMAL_RADIUS;
 use super::Mapper;
 use crate::frontend::lidar::Travel;
 use crate::frontend::Submap;
 use crate::geom::Se2;
 
-/// Radius, in cells, of the normal fit of the refill's points.
-const NORMAL_RADIUS: u8 = 2;
 /// Submaps (the newest) that refill a restarted local point map.
 const REFILL_SUBMAPS: usize = 2;
 

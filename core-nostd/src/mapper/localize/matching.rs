@@ -1,14 +1,17 @@
 //! Matching a scan with the saved map (see the parent module): ICP against the occupied cells
 //! of the submaps around a world pose, and the scan's fit to the whole map.
 
-use super::{Miss, MAP_SUBMAPS, NORMAL_RADIUS, OCCUPIED};
+use super::Miss;
 use crate::frontend::grid::probability;
 use crate::frontend::icp::MatchError;
 use crate::frontend::scan::{ScanPoint, MAX_POINTS};
 use crate::frontend::{align, IcpConfig, KdTree, Submap};
 use crate::geom::{Info3, Se2};
-use crate::mapper::loops::MatchSource;
+use crate::mapper::loops::{MatchSource, NORMAL_RADIUS, OCCUPIED};
 use crate::mapper::Mapper;
+
+/// Submaps whose occupied cells a scan is matched with, nearest anchor first.
+const MAP_SUBMAPS: usize = 16;
 
 /// The map points a match was made with, kept for the next: a keyframe near the last one sees
 /// the same submaps, and gathering their points (with normals) and arranging them cost more
@@ -16,9 +19,9 @@ use crate::mapper::Mapper;
 #[derive(Clone, Debug)]
 pub(super) struct MapReference {
     /// Submap slots, ascending.
-    pub(super) slots: heapless::Vec<usize, MAP_SUBMAPS>,
+    slots: heapless::Vec<usize, MAP_SUBMAPS>,
     /// Points held.
-    pub(super) len: usize,
+    len: usize,
 }
 
 impl Mapper<'_> {

@@ -72,12 +72,6 @@ pub const REFUTE: u8 = 2;
 /// Candidate evaluations of the global search per keyframe (whole submaps are searched; the
 /// last one started may overrun it).
 pub const GLOBAL_BUDGET: u64 = 400_000;
-/// Submaps whose occupied cells a scan is matched with, nearest anchor first.
-const MAP_SUBMAPS: usize = 16;
-/// Occupied cells for the match with the map: log-odds units at least this (probability ~0.73).
-const OCCUPIED: i8 = 10;
-/// Radius, in cells, of the normal fit of the map's points.
-const NORMAL_RADIUS: u8 = 2;
 /// Distinct places a global search keeps for one keyframe.
 const PLACES: usize = 8;
 /// Heading sectors each submap is searched in by the global search.
