@@ -15,7 +15,7 @@ use crate::backend::prune::{PruneReport, PruneScratch};
 use crate::backend::schedule::{
     counts_nearly_full, make_room, BackendCounters, BackendSchedule, BackendStep, PoolPruning,
 };
-use crate::frontend::lidar::MotionNoise;
+use crate::frontend::lidar::{MotionNoise, Travel};
 use crate::geom::{Info3, Se2};
 use crate::gpe::{choose_anchor, AnchorCandidate};
 use crate::graph::{EdgeKind, PoseEdge, PoseGraph, RobustKernel};
@@ -313,12 +313,14 @@ impl<'r> BackEnd<'r> {
         self.schedule.counters()
     }
 
-    /// Moves the stored front-end poses and travels of every node by `f` (a map rebased into
-    /// another session's front-end frame); `f` gets each node's metadata and estimate.
-    pub(crate) fn rebase(&mut self, mut f: impl FnMut(&mut NodeMeta, &Se2)) {
+    /// Re-expresses the stored front-end poses and travels of every node in another
+    /// session's front-end frame: a node's front-end pose becomes `to_session` composed with
+    /// its estimate, its travel `travel` (a map rebased into the session that extends it).
+    pub(crate) fn rebase(&mut self, to_session: Se2, travel: Travel) {
         let n = self.graph.node_count();
         for (m, node) in self.meta.iter_mut().zip(self.graph.nodes()).take(n) {
-            f(m, &node.pose);
+            m.frontend = to_session.compose(&node.pose);
+            m.travel = travel;
         }
     }
 }

@@ -161,7 +161,13 @@ impl Mapper<'_> {
                 kind: EdgeKind::Loop,
             }),
         };
-        if self.st.mirror.counts.nearly_full() {
+        // A detached back-end answers later: the request goes out early enough.
+        let per_node = 1 + usize::from(self.cfg.loops.max_candidates);
+        if self
+            .back
+            .ahead(self.st.mirror.counts, per_node)
+            .nearly_full()
+        {
             self.prune_pool();
         }
         // The edge joins the newest node, or the map's node, as they are after the pruning.
@@ -184,7 +190,9 @@ impl Mapper<'_> {
         self.st.stats.keyframes += 1;
         let submap = self.submap_for(serial, pose);
         if let Some(slot) = submap {
-            self.back.set_submap(serial, slot);
+            let opens =
+                (self.submaps.get(slot as usize)).is_some_and(|m| m.anchor_serial == serial);
+            self.back.set_submap(serial, slot, opens);
         }
         self.refresh_mirror();
         if let Some(slot) = submap {

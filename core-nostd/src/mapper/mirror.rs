@@ -16,6 +16,7 @@
 //! real-time part decides from them whether a frame node fits or a pruning is due.
 
 use super::back::GraphCounts;
+use super::link::BackLink;
 use super::Mapper;
 use crate::geom::Se2;
 use crate::gpe::NodeTie;
@@ -54,7 +55,11 @@ impl PoseMirror {
 impl Mapper<'_> {
     /// Copies the estimates the real-time part needs from the back-end.
     pub(crate) fn refresh_mirror(&mut self) {
-        let back = &self.back;
+        let BackLink::Local(back) = &self.back else {
+            // Detached: the worker's reports are the copy.
+            self.take_reports();
+            return;
+        };
         let node = |i: usize| {
             let (estimate, meta) = (back.pose(i)?, back.meta(i)?);
             Some(MirroredNode {

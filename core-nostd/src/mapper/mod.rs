@@ -21,7 +21,9 @@
 //! [`BackendSchedule`]) optimizes the graph in steps of at most
 //! [`BackendConfig::work_budget`] work units each (a solve resumes where the last step left
 //! it); a finished optimization chooses the GPE's anchor. The caller decides when to step it
-//! (every scan, in a background thread, or late on purpose to test the GPE).
+//! (every scan, or late on purpose to test the GPE), or moves it to another thread with
+//! [`Mapper::detach_backend`], the two parts then joined by fixed-capacity queues (module
+//! `link`).
 //!
 //! # Frames and nodes
 //! A frame node is created per keyframe; the LiDAR keyframe hangs off it with the identity
@@ -41,6 +43,7 @@ pub mod config;
 mod far;
 pub mod feed;
 mod frames;
+mod link;
 mod localize;
 mod loops;
 pub mod mapfile;
@@ -48,6 +51,7 @@ mod mirror;
 mod pool;
 mod submaps;
 pub mod sync;
+mod turns;
 mod types;
 
 use crate::backend::prune::PruneScratch;
@@ -68,12 +72,14 @@ pub use config::{BackendConfig, FrontendNoise, LoopConfig, MapperConfig};
 pub use feed::{Feeder, Pushed, ScanSlots};
 pub use frames::NodeMeta;
 pub use gpe::GpeConfig;
+pub use link::{BackendWorker, LinkQueues, LINK_CAPACITY, LINK_MAX_SUBMAPS};
 pub use localize::{LocalizeCounters, GLOBAL_BUDGET, LOST_MISSES};
 pub use submaps::SubmapMeta;
 pub use types::{FrameOutput, MapperError, MapperStats, Probe, ScanInput, Section};
 
 use back::BackEnd;
 use frames::FrameState;
+use link::BackLink;
 use loops::LoopState;
 use mirror::PoseMirror;
 use submaps::SubmapState;
@@ -147,8 +153,9 @@ impl RealTimeState {
 /// [`MapperResources::mapper`](crate::profile::MapperResources::mapper).
 pub struct Mapper<'r> {
     pub(crate) cfg: MapperConfig,
-    /// The back-end: graph, node metadata, solver, pruning and schedule.
-    pub(crate) back: BackEnd<'r>,
+    /// The back-end (graph, node metadata, solver, pruning and schedule), or the link to it
+    /// while another thread runs it.
+    pub(crate) back: BackLink<'r>,
     pub(crate) submaps: &'r mut [SubmapMeta],
     /// Cells of every submap, `cells_per_submap` each.
     pub(crate) cells: &'r mut [i8],
@@ -267,7 +274,13 @@ impl<'r> Mapper<'r> {
         let MapperState { rt, schedule } = parts.state;
         let mut mapper = Mapper {
             cfg,
-            back: BackEnd::new(parts.graph, parts.solver, parts.meta, parts.prune, schedule),
+            back: BackLink::Local(BackEnd::new(
+                parts.graph,
+                parts.solver,
+                parts.meta,
+                parts.prune,
+                schedule,
+            )),
             submaps: &mut parts.submaps[..n_submaps],
             cells: &mut parts.cells[..n_submaps * cells_per_submap],
             cells_per_submap,
@@ -322,6 +335,17 @@ impl<'r> Mapper<'r> {
     /// Graph index of the keyframe `serial`, if it is in the graph.
     pub fn node_of(&self, serial: u32) -> Option<usize> {
         self.back.node_of(serial)
+    }
+
+    /// Front-end pose of keyframe `serial` when it is a frame node: any node's while the
+    /// back-end is interleaved, the newest node's while it is detached (the one a frame's
+    /// [`FrameOutput::reference_serial`] names when mapping).
+    pub fn keyframe_frontend(&self, serial: u32) -> Option<Se2> {
+        let newest = self.st.mirror.newest.filter(|n| n.serial == serial);
+        newest.map(|n| n.tie.frontend).or_else(|| {
+            let i = self.back.node_of(serial)?;
+            self.back.nodes().get(i).map(|m| m.frontend)
+        })
     }
 
     /// Current global estimate of keyframe `serial`.
@@ -401,6 +425,8 @@ impl<'r> Mapper<'r> {
         deadline_passed: bool,
         probe: &mut impl Probe,
     ) -> Result<FrameOutput, MapperError> {
+        // A detached back-end's reports since the last frame.
+        self.take_reports();
         // Preprocess: stamp order, range limits and mounting; the points land in `self.scan`.
         let previous = self.st.last_stamp;
         self.preprocess(scan)?;
@@ -525,55 +551,6 @@ impl<'r> Mapper<'r> {
             anchor: anchor.map(|n| n.tie),
             deadline_passed,
         }
-    }
-
-    /// Asks for an optimization at the next back-end step even without new loop closures (e.g.
-    /// to settle the map at the end of a run).
-    pub fn request_optimization(&mut self) {
-        // A map being localized in stays as it was saved.
-        if !self.localizing() {
-            self.back.request_optimization();
-        }
-    }
-
-    /// The back-end's share of one frame in an interleaved schedule: up to
-    /// `config.backend.steps_per_frame` steps of [`Mapper::step_backend`], fewer when it has
-    /// nothing left to do; the last step that worked (or `Idle`).
-    pub fn step_backend_frame(&mut self, iterations: u32) -> BackendStep {
-        let mut last = BackendStep::Idle;
-        for _ in 0..self.cfg.backend.steps_per_frame.max(1) {
-            match self.step_backend(iterations) {
-                BackendStep::Idle => break,
-                step => last = step,
-            }
-        }
-        last
-    }
-
-    /// Runs one back-end step: at most `config.backend.work_budget` work units of the due
-    /// optimization, whose solves run at most `iterations` Gauss-Newton iterations each (a
-    /// finished optimization chooses the GPE's anchor), or one turn of the far loop search.
-    pub fn step_backend(&mut self, iterations: u32) -> BackendStep {
-        // The far loop search and the optimizer share the back-end: while both have work they
-        // take turns. Over a known map loops close at nearly every keyframe, so an optimizer
-        // that always came first would never leave a turn to the search that finds a place
-        // after the windowed search lost it.
-        if self.st.far.takes_turn() && self.step_far() {
-            return BackendStep::Working;
-        }
-        let step = self.back.step(&self.cfg, iterations);
-        if step == BackendStep::Finished {
-            let anchor = self.back.choose_anchor(&self.cfg.noise);
-            self.st.gpe.set_anchor(anchor);
-        }
-        if step != BackendStep::Idle {
-            self.refresh_mirror();
-        }
-        // The far loop search also takes every turn the optimizer leaves idle.
-        if step == BackendStep::Idle && self.step_far() {
-            return BackendStep::Working;
-        }
-        step
     }
 }
 

@@ -1333,3 +1333,192 @@ fn a_new_submap_never_recycles_the_one_just_left() {
         assert_eq!(outages, 3, "{checked} submaps left: {s:?}");
     });
 }
+
+// The back-end detached into a worker (module `link`).
+
+/// How the back-end of [`run_linked`] runs.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Linked {
+    /// Interleaved, stepped until idle after every scan.
+    Interleaved,
+    /// Detached, its worker stepped until idle after every scan on the same thread.
+    Detached,
+    /// Detached, its worker on another thread; a scan waits while the worker optimizes and
+    /// lacks more than one keyframe.
+    Threaded,
+}
+
+/// The two laps of [`run`] in `resources`, the back-end run as `how`; the outputs, the final
+/// poses of every scan and the counters.
+fn run_linked<const N: usize, const E: usize, const S: usize>(
+    res: &mut MapperResources<N, E, S, { 82 * 82 }, 8192>,
+    config: MapperConfig,
+    how: Linked,
+) -> (Vec<FrameOutput>, Vec<Option<Se2>>, MapperStats) {
+    let truth = path();
+    let mut mapper = res.mapper(config).expect("resources fit");
+    let mut queues: Box<LinkQueues> = Box::default();
+    let mut worker =
+        (how != Linked::Interleaved).then(|| mapper.detach_backend(&mut queues).expect("detaches"));
+    let done = std::sync::atomic::AtomicBool::new(false);
+    let (outputs, serial_of) = std::thread::scope(|s| {
+        let thread = (how == Linked::Threaded).then(|| {
+            let mut w = worker.take().expect("worker");
+            let done = &done;
+            s.spawn(move || {
+                while !done.load(std::sync::atomic::Ordering::Acquire) {
+                    if w.step(5) == BackendStep::Idle {
+                        std::thread::yield_now();
+                    }
+                }
+                w
+            })
+        });
+        let mut odom = Se2::IDENTITY;
+        let mut outputs = Vec::new();
+        let mut serial_of = Vec::new();
+        for (i, p) in truth.iter().enumerate() {
+            if i > 0 {
+                let inc = truth[i - 1].between(p);
+                let d = libm::hypot(inc.x, inc.y);
+                odom = odom.compose(&Se2::new(inc.x, inc.y, inc.theta + d * 0.035));
+            }
+            let t = 1_000_000_000 + i as i64 * 100_000_000;
+            if how == Linked::Threaded {
+                while mapper
+                    .backend_lag()
+                    .is_some_and(|(lag, idle)| !idle && lag > 1)
+                {
+                    if !mapper.step_far_search() {
+                        std::thread::yield_now();
+                    }
+                }
+            }
+            mapper.push_odometry(t, odom).expect("odometry in order");
+            let ranges = scan_at(p);
+            let out = mapper
+                .push_scan(&scan_input(&ranges, t), false)
+                .expect("scan accepted");
+            let f = mapper
+                .keyframe_frontend(out.reference_serial)
+                .expect("reference node");
+            serial_of.push((out.reference_serial, f.between(&out.frontend)));
+            outputs.push(out);
+            match (how, worker.as_mut()) {
+                (Linked::Interleaved, _) => while mapper.step_backend(5) != BackendStep::Idle {},
+                (Linked::Detached, Some(w)) => {
+                    while w.step(5) != BackendStep::Idle {}
+                    while mapper.step_far_search() {}
+                }
+                _ => {
+                    mapper.step_far_search();
+                }
+            }
+        }
+        done.store(true, std::sync::atomic::Ordering::Release);
+        if let Some(t) = thread {
+            worker = Some(t.join().expect("worker thread"));
+        }
+        (outputs, serial_of)
+    });
+    if let Some(w) = worker {
+        mapper.attach_backend(w);
+    }
+    mapper.request_optimization();
+    while mapper.step_backend(10) != BackendStep::Idle {}
+    let final_poses = serial_of
+        .iter()
+        .map(|(s, rel)| Some(mapper.keyframe_pose(*s)?.compose(rel)))
+        .collect();
+    (outputs, final_poses, mapper.stats())
+}
+
+/// Largest position error of the scans whose keyframe was kept, relative to the first of them
+/// (the map's frame is arbitrary); `None` when one of the last 20 scans lost its (the newest
+/// nodes are never pruned).
+fn worst_kept_error(poses: &[Option<Se2>]) -> Option<f64> {
+    let truth = path();
+    if poses.iter().rev().take(20).any(Option::is_none) {
+        return None;
+    }
+    let (first, origin) = poses
+        .iter()
+        .enumerate()
+        .find_map(|(i, p)| Some((i, (*p)?)))?;
+    let worst = poses.iter().zip(&truth).filter_map(|(p, t)| {
+        let d = truth[first].between(t).between(&origin.between(&(*p)?));
+        Some(libm::hypot(d.x, d.y))
+    });
+    Some(worst.fold(0.0, f64::max))
+}
+
+#[test]
+fn a_detached_back_end_stepped_between_frames_maps_as_the_interleaved_one() {
+    with_stack(|| {
+        let mut res: Box<TestResources> = Box::default();
+        let interleaved = run_linked(&mut res, config(), Linked::Interleaved);
+        let mut res: Box<TestResources> = Box::default();
+        let detached = run_linked(&mut res, config(), Linked::Detached);
+        assert!(interleaved.2.loop_closures >= 2, "{:?}", interleaved.2);
+        assert_eq!(detached.0, interleaved.0);
+        assert_eq!(detached.1, interleaved.1);
+        assert_eq!(detached.2, interleaved.2);
+    });
+}
+
+#[test]
+fn a_back_end_on_its_own_thread_closes_the_laps() {
+    with_stack(|| {
+        let mut res: Box<TestResources> = Box::default();
+        let (outputs, poses, s) = run_linked(&mut res, config(), Linked::Threaded);
+        assert_eq!(s.scans as usize, outputs.len());
+        assert!(s.loop_closures >= 2, "{s:?}");
+        assert!(s.optimizations >= 1, "{s:?}");
+        assert_eq!((s.keyframes_dropped, s.link_overflows), (0, 0), "{s:?}");
+        let poses: Vec<Se2> = poses.into_iter().map(|p| p.expect("kept")).collect();
+        assert!(relative_error(&poses, &path(), 20) < 0.05);
+        let some: Vec<Option<Se2>> = poses.into_iter().map(Some).collect();
+        let worst = worst_kept_error(&some).expect("newest kept");
+        assert!(worst < 0.1, "worst error {worst}");
+    });
+}
+
+#[test]
+fn a_detached_back_end_makes_room_in_a_full_pool() {
+    with_stack(|| {
+        type Small = MapperResources<96, 288, 12, { 82 * 82 }, 8192>;
+        let cfg = MapperConfig {
+            backend: BackendConfig {
+                prune_keep_recent: 10,
+                ..config().backend
+            },
+            ..config()
+        };
+        let mut res: Box<Small> = Box::default();
+        let (_, poses, s) = run_linked(&mut res, cfg, Linked::Detached);
+        assert!(s.prunes >= 1, "{s:?}");
+        assert!(s.nodes_pruned > 0, "{s:?}");
+        assert!(s.keyframes as usize > 96, "{s:?}");
+        assert_eq!(s.keyframes_dropped, 0, "{s:?}");
+        let worst = worst_kept_error(&poses).expect("newest kept");
+        assert!(worst < 0.15, "worst error {worst}");
+    });
+}
+
+#[test]
+fn a_localizing_or_detached_mapper_does_not_detach_again() {
+    with_stack(|| {
+        let mut res: Box<TestResources> = Box::default();
+        let mut mapper = res.mapper(config()).expect("resources fit");
+        let mut queues: Box<LinkQueues> = Box::default();
+        let worker = mapper.detach_backend(&mut queues).expect("detaches");
+        let mut again: Box<LinkQueues> = Box::default();
+        assert!(matches!(
+            mapper.detach_backend(&mut again),
+            Err(MapperError::Config(_))
+        ));
+        assert_eq!(mapper.step_backend(5), BackendStep::Idle);
+        mapper.attach_backend(worker);
+        assert_eq!(mapper.backend_lag(), None);
+    });
+}

@@ -34,6 +34,8 @@ pub struct MapperStats {
     pub keyframes: u32,
     /// Keyframes not created because a pool was full.
     pub keyframes_dropped: u32,
+    /// Messages to a detached back-end lost to a full queue (module `link`).
+    pub link_overflows: u32,
     /// Submaps opened.
     pub submaps: u32,
     /// Submaps recycled because the pool was full.
@@ -87,6 +89,7 @@ impl MapperStats {
         odometry_stalls: 0,
         keyframes: 0,
         keyframes_dropped: 0,
+        link_overflows: 0,
         submaps: 0,
         submaps_recycled: 0,
         loop_searches: 0,

@@ -111,10 +111,7 @@ impl Mapper<'_> {
     fn rebase_map(&mut self, frontend: &Se2, fix: &Se2) {
         let to_session = frontend.compose(&fix.inverse());
         let travel = self.st.frontend.travel();
-        self.back.rebase(|m, pose| {
-            m.frontend = to_session.compose(pose);
-            m.travel = travel;
-        });
+        self.back.rebase(to_session, travel);
         for s in self.submaps.iter_mut().filter(|s| s.in_use) {
             let Some(pose) = s.anchor_estimate else {
                 continue;

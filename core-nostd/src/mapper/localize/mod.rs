@@ -233,7 +233,7 @@ impl Mapper<'_> {
 
     /// Whether the mapper is localizing in a saved map (adding nothing to it): in
     /// localization-only mode, or in a session extending a map before its first fix.
-    pub(crate) fn localizing(&self) -> bool {
+    pub fn localizing(&self) -> bool {
         self.st.localize.as_ref().is_some_and(|l| !l.joined)
     }
 
