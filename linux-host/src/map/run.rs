@@ -15,7 +15,7 @@
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
+use std::sync::atomic::{AtomicBool, AtomicI64, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
@@ -25,8 +25,8 @@ use cloi_core::geom::Se2;
 use cloi_core::graph::EdgeKind;
 use cloi_core::mapper::sync::{SyncStats, SYNC_SLOTS, SYNC_WAIT_NS};
 use cloi_core::mapper::{
-    BackendStep, Feeder, FrameOutput, LocalizeCounters, Mapper, MapperError, MapperStats,
-    ScanInput, ScanSlots,
+    BackendStep, BackendWorker, Feeder, FrameOutput, LinkQueues, LocalizeCounters, Mapper,
+    MapperError, MapperStats, ScanInput, ScanSlots, LINK_CAPACITY,
 };
 use cloi_core::sensor::{ImageView, Timestamp};
 use cloi_core::storage::NodeId;
@@ -254,9 +254,8 @@ impl Driver<'_> {
     /// Records an accepted scan under its original stamp `stamp`.
     fn accept(&mut self, mapper: &Mapper<'_>, out: &FrameOutput, stamp: i64) {
         let reference = mapper
-            .node_of(out.reference_serial)
-            .and_then(|i| mapper.nodes().get(i))
-            .map_or(Se2::IDENTITY, |m| m.frontend);
+            .keyframe_frontend(out.reference_serial)
+            .unwrap_or(Se2::IDENTITY);
         self.first_stamp.get_or_insert(stamp);
         self.last_stamp = self.last_stamp.max(stamp);
         if let Some((gpe, frontend)) = self.previous {
@@ -293,6 +292,8 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
     let stats_handle = input.stats_handle();
     let wall = Instant::now();
     let mut res = HeapResources::new(settings.profile.spec());
+    // The queues between the two threads of the threaded schedule (about 100 kB).
+    let mut queues = Box::new(LinkQueues::new());
     let mapper = match &settings.localize {
         None => res.mapper(cfg),
         Some(target) => {
@@ -306,7 +307,7 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
         }
     }
     .map_err(|e| anyhow!("profile {:?}: {e}", settings.profile))?;
-    let run = drive(mapper, input, settings, &progress)?;
+    let run = drive(mapper, &mut queues, input, settings, &progress)?;
     // The outputs are composed from the copies `drive` made: the profile's resources, the
     // largest part of the process, go before the global grid and the picture are built.
     drop(res);
@@ -351,8 +352,9 @@ struct Finished {
     session_first: Option<u32>,
 }
 
-fn drive(
-    mut mapper: Mapper<'_>,
+fn drive<'r>(
+    mut mapper: Mapper<'r>,
+    queues: &'r mut LinkQueues,
     input: InputStream,
     settings: &MapSettings,
     progress: &MapProgress,
@@ -421,40 +423,16 @@ fn drive(
         }
         driver.feed(&mut mapper, Feed::End, Instant::now(), &mut step_backend);
     } else {
-        let shared = Mutex::new(mapper);
-        let done = std::sync::atomic::AtomicBool::new(false);
+        // The real-time part feeds on this thread; once the mapper has a back-end to run (at
+        // once for a new map, after the join for a session extending a saved one) it moves
+        // into a worker on a second thread, the two joined by the core's queues.
+        let done = AtomicBool::new(false);
+        let data_time = AtomicI64::new(i64::MIN);
         let fault = injected_fault();
+        let iterations = settings.backend_iterations_per_scan.max(1);
+        let mut queues = Some(queues);
         std::thread::scope(|s| -> Result<()> {
-            let backend = s.spawn(|| {
-                // Lowest priority for the back-end (nice 19 under Linux's normal policy); when
-                // the system refuses, it still only takes the lock between frames.
-                let _ = thread_priority::set_current_thread_priority(
-                    thread_priority::ThreadPriority::Min,
-                );
-                let mut last_run: i64 = i64::MIN;
-                while !done.load(std::sync::atomic::Ordering::Acquire) {
-                    let idle = match shared.lock() {
-                        Ok(mut m) => {
-                            if fault == Some(InjectedFault::Backend) && m.stats().scans >= 10 {
-                                panic!("injected back-end failure ({FAULT_ENV})");
-                            }
-                            let now = m.stats().scans as i64;
-                            if delay_ns > 0 && now == last_run {
-                                true
-                            } else {
-                                last_run = now;
-                                m.step_backend(1) == BackendStep::Idle
-                            }
-                        }
-                        Err(_) => return,
-                    };
-                    if idle {
-                        std::thread::sleep(Duration::from_millis(1));
-                    } else {
-                        std::thread::yield_now();
-                    }
-                }
-            });
+            let mut backend = None;
             // However the feeding below ends, a panic included, the back-end thread must
             // stop too: the scope waits for it before the panic can reach the user.
             let _stop_backend = StopOnDrop(&done);
@@ -474,17 +452,30 @@ fn drive(
                 if is_scan && scans == 10 && fault == Some(InjectedFault::Frontend) {
                     panic!("injected front-end failure ({FAULT_ENV})");
                 }
-                if backend.is_finished() {
-                    result = Err(anyhow!("the back-end thread stopped during the run"));
+                if backend.is_none() && !mapper.localizing() {
+                    if let Some(q) = queues.take() {
+                        let worker = mapper.detach_backend(q)?;
+                        let (done, data_time) = (&done, &data_time);
+                        backend = Some(s.spawn(move || {
+                            run_worker(worker, done, data_time, delay_ns, iterations, fault)
+                        }));
+                    }
+                }
+                if let Err(e) = wait_for_backend(&mut mapper, backend.as_ref()) {
+                    result = Err(e);
                     break;
                 }
                 let started = Instant::now();
-                let Ok(mut m) = shared.lock() else {
-                    result = Err(anyhow!("the back-end thread panicked"));
-                    break;
-                };
-                driver.feed(&mut m, Feed::Event(&ev), started, &mut |_, _| {});
-                drop(m);
+                let detached = backend.is_some();
+                driver.feed(&mut mapper, Feed::Event(&ev), started, &mut |m, t_ns| {
+                    data_time.store(t_ns, Ordering::Release);
+                    if detached {
+                        m.step_far_search();
+                    } else {
+                        // Localizing in a frozen map: no optimizer work, only the searches.
+                        m.step_backend_frame(iterations);
+                    }
+                });
                 if is_scan {
                     scans += 1;
                     if scans.is_multiple_of(200) {
@@ -495,20 +486,17 @@ fn drive(
                 }
             }
             if result.is_ok() {
-                match shared.lock() {
-                    Ok(mut m) => driver.feed(&mut m, Feed::End, Instant::now(), &mut |_, _| {}),
-                    Err(_) => result = Err(anyhow!("the back-end thread panicked")),
-                }
+                driver.feed(&mut mapper, Feed::End, Instant::now(), &mut |_, _| {});
             }
-            done.store(true, std::sync::atomic::Ordering::Release);
-            backend
-                .join()
-                .map_err(|_| anyhow!("the back-end thread panicked"))?;
+            done.store(true, Ordering::Release);
+            if let Some(handle) = backend {
+                let worker = handle
+                    .join()
+                    .map_err(|_| anyhow!("the back-end thread panicked"))?;
+                mapper.attach_backend(worker);
+            }
             result
         })?;
-        mapper = shared
-            .into_inner()
-            .map_err(|_| anyhow!("the mapper lock was poisoned"))?;
     }
     // Settle the back-end: a final optimization over everything.
     mapper.request_optimization();
@@ -975,6 +963,7 @@ fn stats_json(s: &MapperStats) -> serde_json::Value {
         "odometry_rejected": s.odometry_rejected,
         "keyframes": s.keyframes,
         "keyframes_dropped": s.keyframes_dropped,
+        "link_overflows": s.link_overflows,
         "submaps": s.submaps,
         "submaps_recycled": s.submaps_recycled,
         "loop_searches": s.loop_searches,
@@ -1016,12 +1005,82 @@ fn injected_fault() -> Option<InjectedFault> {
     }
 }
 
+/// The back-end thread: steps the detached back-end until `done`, sleeping while it is idle;
+/// with a delay, only once per `delay_ns` of data time (as published in `data_time`), to the
+/// end of the due optimization.
+fn run_worker<'r>(
+    mut worker: BackendWorker<'r>,
+    done: &AtomicBool,
+    data_time: &AtomicI64,
+    delay_ns: i64,
+    iterations: u32,
+    fault: Option<InjectedFault>,
+) -> BackendWorker<'r> {
+    // Lowest priority for the back-end (nice 19 under Linux's normal policy): the real-time
+    // part comes first whenever both want a core.
+    let _ = thread_priority::set_current_thread_priority(thread_priority::ThreadPriority::Min);
+    let mut next_run = i64::MIN;
+    let mut steps = 0u32;
+    while !done.load(Ordering::Acquire) {
+        let now = data_time.load(Ordering::Acquire);
+        if delay_ns > 0 && now < next_run {
+            std::thread::sleep(Duration::from_millis(1));
+            continue;
+        }
+        let step = worker.step(iterations);
+        steps += u32::from(step != BackendStep::Idle);
+        if fault == Some(InjectedFault::Backend) && steps >= 10 {
+            panic!("injected back-end failure ({FAULT_ENV})");
+        }
+        if step == BackendStep::Idle {
+            if delay_ns > 0 {
+                next_run = now.saturating_add(delay_ns);
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        } else {
+            std::thread::yield_now();
+        }
+    }
+    worker
+}
+
+/// Waits while the detached back-end has more than half a queue of messages to take, or
+/// while it optimizes and its last finished optimization lacks more than [`PACE_KEYFRAMES`]
+/// of the keyframes sent (a log replays as fast as the back-end keeps up, as it does on a
+/// robot whose data comes in real time); the far loop search runs meanwhile. An error when
+/// the back-end's thread has stopped.
+fn wait_for_backend(
+    mapper: &mut Mapper<'_>,
+    backend: Option<&std::thread::ScopedJoinHandle<'_, BackendWorker<'_>>>,
+) -> Result<()> {
+    let Some(handle) = backend else {
+        return Ok(());
+    };
+    loop {
+        if handle.is_finished() {
+            return Err(anyhow!("the back-end thread stopped during the run"));
+        }
+        let keeps_up = mapper
+            .backend_lag()
+            .is_none_or(|(lag, idle)| idle || lag <= PACE_KEYFRAMES);
+        if keeps_up && mapper.backend_backlog() <= LINK_CAPACITY / 2 {
+            return Ok(());
+        }
+        if !mapper.step_far_search() {
+            std::thread::yield_now();
+        }
+    }
+}
+
+/// Keyframes a replay may run ahead of the back-end's last finished optimization.
+const PACE_KEYFRAMES: u32 = 1;
+
 /// Raises its flag when dropped, also while a panic unwinds.
-struct StopOnDrop<'a>(&'a std::sync::atomic::AtomicBool);
+struct StopOnDrop<'a>(&'a AtomicBool);
 
 impl Drop for StopOnDrop<'_> {
     fn drop(&mut self) {
-        self.0.store(true, std::sync::atomic::Ordering::Release);
+        self.0.store(true, Ordering::Release);
     }
 }
 
