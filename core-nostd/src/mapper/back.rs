@@ -10,6 +10,7 @@
 //! changed under a pruning in between.
 
 use super::frames::{node_index, NodeMeta};
+use super::mirror::MirroredNode;
 use super::MapperConfig;
 use crate::backend::prune::{PruneReport, PruneScratch};
 use crate::backend::schedule::{
@@ -17,7 +18,7 @@ use crate::backend::schedule::{
 };
 use crate::frontend::lidar::{MotionNoise, Travel};
 use crate::geom::{Info3, Se2};
-use crate::gpe::{choose_anchor, AnchorCandidate};
+use crate::gpe::{choose_anchor, AnchorCandidate, NodeTie};
 use crate::graph::{EdgeKind, PoseEdge, PoseGraph, RobustKernel};
 use crate::solver::SolverBuffers;
 use crate::storage::NodeId;
@@ -135,6 +136,19 @@ impl<'r> BackEnd<'r> {
     /// Metadata of the node at graph index `index`.
     pub(crate) fn meta(&self, index: usize) -> Option<&NodeMeta> {
         self.nodes().get(index)
+    }
+
+    /// The node at graph index `index` as the real-time part mirrors it.
+    pub(crate) fn mirrored(&self, index: usize) -> Option<MirroredNode> {
+        let (estimate, meta) = (self.pose(index)?, self.meta(index)?);
+        Some(MirroredNode {
+            serial: meta.serial,
+            tie: NodeTie {
+                estimate,
+                frontend: meta.frontend,
+                travel: meta.travel,
+            },
+        })
     }
 
     /// Current estimate of the keyframe `serial`.

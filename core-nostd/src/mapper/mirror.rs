@@ -60,17 +60,7 @@ impl Mapper<'_> {
             self.take_reports();
             return;
         };
-        let node = |i: usize| {
-            let (estimate, meta) = (back.pose(i)?, back.meta(i)?);
-            Some(MirroredNode {
-                serial: meta.serial,
-                tie: NodeTie {
-                    estimate,
-                    frontend: meta.frontend,
-                    travel: meta.travel,
-                },
-            })
-        };
+        let node = |i: usize| back.mirrored(i);
         self.st.mirror = PoseMirror {
             newest: back.newest().and_then(node),
             anchor: self

@@ -197,20 +197,15 @@ fn run_with(
     let mut res: Box<TestResources> = Box::default();
     let mut mapper = res.mapper(config).expect("resources fit");
     // Odometry: the true increments with a heading bias of 2 degrees per metre.
-    let mut odom = Se2::IDENTITY;
+    let odometry = biased_odometry(&truth);
     let mut reported = Se2::IDENTITY;
     let mut outputs = Vec::new();
     let mut serial_of = Vec::new();
     let mut sections = Vec::new();
     for (i, p) in truth.iter().enumerate() {
-        if i > 0 {
-            let inc = truth[i - 1].between(p);
-            let d = libm::hypot(inc.x, inc.y);
-            odom = odom.compose(&Se2::new(inc.x, inc.y, inc.theta + d * 0.035));
-        }
         let t = 1_000_000_000 + i as i64 * 100_000_000;
         if !stalled(i) {
-            reported = odom;
+            reported = odometry[i];
         }
         mapper
             .push_odometry(t, reported)
@@ -250,6 +245,22 @@ fn run_with(
         truth,
         sections,
     }
+}
+
+/// Wheel odometry along `truth`: its true increments with a heading bias of 2 degrees per
+/// metre, starting at the identity.
+fn biased_odometry(truth: &[Se2]) -> Vec<Se2> {
+    let mut odom = Se2::IDENTITY;
+    let mut out = Vec::new();
+    for (i, p) in truth.iter().enumerate() {
+        if i > 0 {
+            let inc = truth[i - 1].between(p);
+            let d = libm::hypot(inc.x, inc.y);
+            odom = odom.compose(&Se2::new(inc.x, inc.y, inc.theta + d * 0.035));
+        }
+        out.push(odom);
+    }
+    out
 }
 
 fn config() -> MapperConfig {
@@ -1374,15 +1385,10 @@ fn run_linked<const N: usize, const E: usize, const S: usize>(
                 w
             })
         });
-        let mut odom = Se2::IDENTITY;
+        let odometry = biased_odometry(&truth);
         let mut outputs = Vec::new();
         let mut serial_of = Vec::new();
-        for (i, p) in truth.iter().enumerate() {
-            if i > 0 {
-                let inc = truth[i - 1].between(p);
-                let d = libm::hypot(inc.x, inc.y);
-                odom = odom.compose(&Se2::new(inc.x, inc.y, inc.theta + d * 0.035));
-            }
+        for (i, (p, odom)) in truth.iter().zip(odometry).enumerate() {
             let t = 1_000_000_000 + i as i64 * 100_000_000;
             if how == Linked::Threaded {
                 while mapper

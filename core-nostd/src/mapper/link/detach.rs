@@ -4,7 +4,7 @@
 use super::NO_ANCHOR;
 use super::{Applied, BackLink, BackState, BackendWorker, LinkQueues, Remote, ToBack, ToRealTime};
 use crate::graph::PoseGraph;
-use crate::mapper::{Mapper, MapperError};
+use crate::mapper::{Mapper, MapperError, MapperStats};
 
 impl<'r> Mapper<'r> {
     /// Moves the back-end into a [`BackendWorker`] that another thread steps, the two joined
@@ -81,14 +81,8 @@ impl<'r> Mapper<'r> {
         };
         let (seen, overflows) = (remote.state, remote.overflows);
         self.back = BackLink::Local(worker.back);
-        let s = worker.state;
-        let stats = &mut self.st.stats;
-        stats.prunes += s.prunes.saturating_sub(seen.prunes);
-        stats.nodes_pruned += s.nodes_pruned.saturating_sub(seen.nodes_pruned);
-        stats.keyframes_dropped += s.refused_nodes.saturating_sub(seen.refused_nodes);
-        stats.loop_closures = (stats.loop_closures)
-            .saturating_sub(s.refused_loops.saturating_sub(seen.refused_loops));
-        stats.link_overflows += overflows;
+        count_reported(&mut self.st.stats, &seen, &worker.state);
+        self.st.stats.link_overflows += overflows;
         if worker.chosen != self.st.gpe.anchor() {
             self.st.gpe.set_anchor(worker.chosen);
         }
@@ -156,12 +150,7 @@ impl<'r> Mapper<'r> {
             }
         }
         mirror.counts = self.back.counts();
-        let stats = &mut self.st.stats;
-        stats.prunes += s.prunes.saturating_sub(before.prunes);
-        stats.nodes_pruned += s.nodes_pruned.saturating_sub(before.nodes_pruned);
-        stats.keyframes_dropped += s.refused_nodes.saturating_sub(before.refused_nodes);
-        stats.loop_closures = (stats.loop_closures)
-            .saturating_sub(s.refused_loops.saturating_sub(before.refused_loops));
+        count_reported(&mut self.st.stats, &before, &s);
         // A submap opened by a node the worker has not reported yet lies where it was sent.
         if let Some(newest) = mirror.newest {
             for m in self.submaps.iter_mut() {
@@ -171,4 +160,14 @@ impl<'r> Mapper<'r> {
             }
         }
     }
+}
+
+/// Adds to `stats` what the worker counted between its reports `before` and `after`: the
+/// prunings, and the frame nodes and loop edges the graph refused (counted as sent before).
+fn count_reported(stats: &mut MapperStats, before: &BackState, after: &BackState) {
+    stats.prunes += after.prunes.saturating_sub(before.prunes);
+    stats.nodes_pruned += after.nodes_pruned.saturating_sub(before.nodes_pruned);
+    stats.keyframes_dropped += after.refused_nodes.saturating_sub(before.refused_nodes);
+    let refused = after.refused_loops.saturating_sub(before.refused_loops);
+    stats.loop_closures = stats.loop_closures.saturating_sub(refused);
 }

@@ -3,9 +3,7 @@
 
 use super::{BackState, ToBack, ToRealTime, CHUNK, LINK_MAX_SUBMAPS, NO_ANCHOR};
 use crate::backend::schedule::BackendStep;
-use crate::gpe::NodeTie;
 use crate::mapper::back::BackEnd;
-use crate::mapper::mirror::MirroredNode;
 use crate::mapper::MapperConfig;
 use heapless::spsc::{Consumer, Producer};
 
@@ -160,20 +158,11 @@ impl BackendWorker<'_> {
             return;
         }
         let back = &self.back;
-        let node = |i: usize| {
-            let (estimate, meta) = (back.pose(i)?, back.meta(i)?);
-            Some(MirroredNode {
-                serial: meta.serial,
-                tie: NodeTie {
-                    estimate,
-                    frontend: meta.frontend,
-                    travel: meta.travel,
-                },
-            })
-        };
         let s = &mut self.state;
-        s.newest = back.newest().and_then(node);
-        s.anchor = self.chosen.and_then(|a| back.node_of(a)).and_then(node);
+        s.newest = back.newest().and_then(|i| back.mirrored(i));
+        s.anchor = (self.chosen)
+            .and_then(|a| back.node_of(a))
+            .and_then(|i| back.mirrored(i));
         s.pinned = self.pinned.map(|p| (p, back.pose_of(p)));
         s.counts = back.counts();
         s.counters = back.counters();
