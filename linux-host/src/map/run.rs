@@ -461,7 +461,12 @@ fn drive<'r>(
                         }));
                     }
                 }
-                if let Err(e) = wait_for_backend(&mut mapper, backend.as_ref()) {
+                // A replayed scan waits for the back-end; one that arrived from a device
+                // does not (live, the back-end keeps up or the GPE carries the pose), nor
+                // one whose back-end is held back on purpose (`--backend-delay`).
+                let pace =
+                    delay_ns <= 0 && matches!(&ev, SensorEvent::Scan(s) if s.received.is_none());
+                if let Err(e) = wait_for_backend(&mut mapper, backend.as_ref(), pace) {
                     result = Err(e);
                     break;
                 }
@@ -1005,9 +1010,9 @@ fn injected_fault() -> Option<InjectedFault> {
     }
 }
 
-/// The back-end thread: steps the detached back-end until `done`, sleeping while it is idle;
-/// with a delay, only once per `delay_ns` of data time (as published in `data_time`), to the
-/// end of the due optimization.
+/// The back-end thread: steps the detached back-end until `done`, sleeping while it is idle.
+/// With a delay it only takes the real-time part's messages, and once per `delay_ns` of data
+/// time (as published in `data_time`) runs the due optimization to its end.
 fn run_worker<'r>(
     mut worker: BackendWorker<'r>,
     done: &AtomicBool,
@@ -1023,35 +1028,34 @@ fn run_worker<'r>(
     let mut steps = 0u32;
     while !done.load(Ordering::Acquire) {
         let now = data_time.load(Ordering::Acquire);
-        if delay_ns > 0 && now < next_run {
-            std::thread::sleep(Duration::from_millis(1));
-            continue;
-        }
-        let step = worker.step(iterations);
+        let step = if delay_ns > 0 && now < next_run {
+            worker.receive();
+            BackendStep::Idle
+        } else {
+            worker.step(iterations)
+        };
         steps += u32::from(step != BackendStep::Idle);
         if fault == Some(InjectedFault::Backend) && steps >= 10 {
             panic!("injected back-end failure ({FAULT_ENV})");
         }
-        if step == BackendStep::Idle {
-            if delay_ns > 0 {
-                next_run = now.saturating_add(delay_ns);
-            }
-            std::thread::sleep(Duration::from_millis(1));
-        } else {
-            std::thread::yield_now();
+        match step {
+            BackendStep::Idle => std::thread::sleep(Duration::from_millis(1)),
+            BackendStep::Finished if delay_ns > 0 => next_run = now.saturating_add(delay_ns),
+            _ => std::thread::yield_now(),
         }
     }
     worker
 }
 
-/// Waits while the detached back-end has more than half a queue of messages to take, or
-/// while it optimizes and its last finished optimization lacks more than [`PACE_KEYFRAMES`]
-/// of the keyframes sent (a log replays as fast as the back-end keeps up, as it does on a
-/// robot whose data comes in real time); the far loop search runs meanwhile. An error when
-/// the back-end's thread has stopped.
+/// Waits while the detached back-end has more than half a queue of messages to take, and,
+/// with `pace`, while it optimizes and its last finished optimization lacks more than
+/// [`PACE_KEYFRAMES`] of the keyframes sent: a log replays as fast as the back-end keeps up,
+/// as it does on a robot whose data come in real time. The far loop search runs meanwhile.
+/// An error when the back-end's thread has stopped.
 fn wait_for_backend(
     mapper: &mut Mapper<'_>,
     backend: Option<&std::thread::ScopedJoinHandle<'_, BackendWorker<'_>>>,
+    pace: bool,
 ) -> Result<()> {
     let Some(handle) = backend else {
         return Ok(());
@@ -1062,7 +1066,7 @@ fn wait_for_backend(
         }
         let keeps_up = mapper
             .backend_lag()
-            .is_none_or(|(lag, idle)| idle || lag <= PACE_KEYFRAMES);
+            .is_none_or(|(lag, idle)| !pace || idle || lag <= PACE_KEYFRAMES);
         if keeps_up && mapper.backend_backlog() <= LINK_CAPACITY / 2 {
             return Ok(());
         }

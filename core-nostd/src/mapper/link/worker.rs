@@ -63,6 +63,15 @@ impl BackendWorker<'_> {
         }
     }
 
+    /// Takes the real-time part's messages and reports, without a step of the optimizer
+    /// (for a back-end held back on purpose, which must still take the frame nodes: the
+    /// queue would fill otherwise); whether there was any.
+    pub fn receive(&mut self) -> bool {
+        let took = self.take_messages();
+        self.publish();
+        took
+    }
+
     /// Applies every waiting message; whether there was any.
     pub(super) fn take_messages(&mut self) -> bool {
         let mut took = false;
