@@ -16,6 +16,8 @@
 //! * [`triangulate`]: a match between two frames of known pose as a 3D point.
 //! * [`two_view`]: the heading change and direction of travel between two frames from their
 //!   matches, the distance from the odometry.
+//! * [`window`]: sliding-window bundle adjustment of planar keyframe poses and 3D landmarks,
+//!   with the wheel+gyro motion as a prior between keyframes.
 //!
 //! Everything works on borrowed or fixed-capacity storage: nothing allocates, nothing recurses,
 //! nothing reads a clock, and no input makes it panic. Pixels are `f32`, geometry `f64`, and
@@ -31,6 +33,7 @@ pub mod pyramid;
 pub mod track;
 pub mod triangulate;
 pub mod two_view;
+pub mod window;
 
 pub use brief::{describe, describe_all, Descriptor};
 pub use camera::{CameraError, CameraExtrinsic, CameraModel, Intrinsics, Kb4, Pinhole};
@@ -40,6 +43,10 @@ pub use image::{smooth_into, smoothed_bytes, GrayImage};
 pub use matching::{match_brute_force, match_guided, Match, MatchConfig, MatchStats};
 pub use pyramid::{pyramid_bytes, Pyramid, PyramidError};
 pub use track::{CameraTrack, TrackConfig, TrackError, TrackScratch, TrackStats, TrackStep};
+pub use window::{
+    BundleWindow, LandmarkReport, LandmarkStatus, MotionPrior, ObservationReport,
+    ObservationStatus, PixelObservation, Termination, WindowConfig, WindowError, WindowSummary,
+};
 
 #[cfg(test)]
 mod synth;
