@@ -238,11 +238,12 @@ pub struct LandmarkReport {
     pub position: Vector3<f64>,
     /// What the solve made of it.
     pub status: LandmarkStatus,
-    /// Its observations used in the solve.
+    /// Its observations that projected at the start (those taken out as outliers included);
+    /// zero when the landmark was set aside.
     pub observations: usize,
     /// Those of them flagged as outliers.
     pub outliers: usize,
-    /// Sum of the squared whitened residuals of its used observations.
+    /// Sum of the squared whitened residuals of those observations at the result.
     pub chi2: f64,
 }
 
@@ -775,7 +776,7 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
                         break;
                     }
                     _ => {
-                        self.restore();
+                        self.restore(fixed);
                         if small {
                             return (iterations, Termination::Converged, cost);
                         }
@@ -1135,13 +1136,10 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
         }
     }
 
-    fn restore(&mut self) {
+    fn restore(&mut self, fixed: usize) {
         let (np, nl) = (self.pose_count, self.landmark_count);
-        for p in self.poses.iter_mut().take(np) {
-            // Fixed poses were never stepped: their backup is not theirs to restore.
-            if p.step != ZERO_V {
-                p.pose = p.backup;
-            }
+        for p in self.poses.iter_mut().take(np).skip(fixed) {
+            p.pose = p.backup;
         }
         for l in self.landmarks.iter_mut().take(nl) {
             l.position = l.backup;
@@ -1167,6 +1165,11 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
             ) else {
                 continue;
             };
+            // A landmark set aside in a later round takes its rejected observations along.
+            if lm.status != LandmarkStatus::Active {
+                slot.status = ObservationStatus::Skipped;
+                continue;
+            }
             let (p, c, s) = (&pose.pose, pose.cos, pose.sin);
             let lin = reprojection(model, mount, p, (c, s), &lm.position, &slot.obs.px);
             let chi2 = lin.map_or(f64::INFINITY, |(r, _, _)| {

@@ -9,6 +9,7 @@ use std::vec::Vec;
 use proptest::prelude::*;
 
 use super::*;
+use crate::frontend::visual::camera::Pinhole;
 use crate::frontend::visual::synth::{cleaner_camera, Rng};
 use crate::frontend::visual::triangulate::{
     triangulate, CameraPose, Observation, TriangulateConfig,
@@ -48,9 +49,13 @@ fn pixel_of(room: &Room, pose: &Se2, p: &Vector3<f64>) -> Option<Vector2<f64>> {
 }
 
 /// `keyframes` poses along a left-turning arc, 25 cm and 5 degrees apart, and the points of
-/// the ceiling and walls that at least two of them see.
+/// the ceiling and walls that at least two of them see by the cleaner's camera.
 fn room(keyframes: usize) -> Room {
     let (model, mount) = cleaner_camera();
+    room_seen_by(keyframes, model, mount)
+}
+
+fn room_seen_by(keyframes: usize, model: CameraModel, mount: CameraExtrinsic) -> Room {
     let mut poses = Vec::new();
     let mut pose = Se2::new(0.0, 0.0, 0.0);
     for _ in 0..keyframes {
@@ -288,6 +293,31 @@ fn exact_data_is_recovered_from_perturbed_poses_and_points() {
             "landmark {l}: {got} vs {truth}"
         );
         assert!(w.landmark_report(l).unwrap().is_inlier());
+    }
+}
+
+/// Test 1 with a pinhole lens of the same focal length.
+#[test]
+fn exact_data_is_recovered_through_a_pinhole_lens_too() {
+    let (kb4, mount) = cleaner_camera();
+    let pinhole = CameraModel::Pinhole(Pinhole::new_checked(kb4.intrinsics()).unwrap());
+    let room = room_seen_by(5, pinhole, mount);
+    assert!(room.points.len() > 50, "{} landmarks", room.points.len());
+    let mut rng = Rng::new(17);
+    let poses = perturbed_poses(&room, &mut rng, 0.04, 3.0);
+    let points = perturbed_points(&room, &mut rng, 0.05);
+    let priors = exact_priors(&room, odometry_information(0.01, 0.01));
+    let mut w = Box::new(Window::new());
+    fill(&mut w, &poses, &points, &room.obs, &priors);
+    let summary = w
+        .solve(&room.model, &room.mount, &WindowConfig::default())
+        .unwrap();
+    std::eprintln!("pinhole: {summary:?}");
+    assert_eq!(summary.termination, Termination::Converged);
+    let (pos, deg) = pose_errors(&w, &room.poses);
+    assert!(pos < 1e-6 && deg < 1e-5, "{pos} m, {deg} deg");
+    for (l, truth) in room.points.iter().enumerate() {
+        assert!((w.landmark(l).unwrap() - truth).norm() < 1e-6);
     }
 }
 
@@ -686,6 +716,21 @@ fn degenerate_inputs_are_refused_or_flagged() {
         Err(WindowError::NotFinite)
     );
     assert_eq!(w.observation_count(), 0);
+    // A prior that carries no information constrains nothing: no gradient, no step, no
+    // factorisation of a zero matrix going wrong.
+    w.push_motion_prior(MotionPrior {
+        information: Matrix3::zeros(),
+        motion: Se2::new(0.5, 0.1, 0.2),
+        ..prior
+    })
+    .unwrap();
+    let summary = w.solve(&room.model, &room.mount, &cfg).unwrap();
+    assert_eq!((summary.iterations, summary.final_cost), (0, 0.0));
+    assert_eq!(w.pose(1), Some(Se2::new(0.3, 0.0, 0.0)));
+    assert_eq!(
+        w.landmark_report(0).unwrap().status,
+        LandmarkStatus::TooFewViews
+    );
 
     // A real scene with four kinds of bad landmark added: seen once, seen along the same
     // ray twice (from two keyframes at one place), behind the camera, and a million metres
