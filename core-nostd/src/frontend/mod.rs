@@ -1,7 +1,8 @@
 //! The LiDAR front-end of the paper's section III-B: odometry fusion, scan preprocessing,
 //! occupancy-grid submaps, scan matching (ICP for odometry and refinement, a correlative
 //! branch-and-bound search for loop closures) and the keyframe decision; and the image
-//! front-end under [`visual`] (camera models, pyramid, corners, descriptors, matching).
+//! front-end under [`visual`] (camera models, pyramid, corners, descriptors, matching,
+//! triangulation, and the sliding-window bundle adjustment of the visual odometry).
 //!
 //! Every type here works on caller-provided or fixed-capacity storage; nothing allocates and
 //! nothing reads a clock. Scan points and grid cells are `f32`, poses `f64`.

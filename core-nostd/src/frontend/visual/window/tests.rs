@@ -872,6 +872,9 @@ fn slot_sizes() {
     // the landmarks, the observations and four counts.
     let expected = 8 * (184 + 184 + 8 * 72 + 24) + 400 * 256 + 3000 * 136 + 4 * 8;
     assert_eq!(size_of::<Window>(), expected);
+    // The constructor runs at compile time, so the firmware can keep a window in a static.
+    static SMALL: BundleWindow<2, 4, 8> = BundleWindow::new();
+    assert_eq!(SMALL.pose_count() + SMALL.landmark_count(), 0);
 }
 
 proptest! {
