@@ -47,8 +47,16 @@ mod tests;
 
 /// The end of a landmark's list of observations.
 const NO_OBS: usize = usize::MAX;
-/// The damping never falls below this, so a step the cost accepted once is still damped.
+/// Floor of the damping: after a long run of accepted steps, a refused one must not need
+/// dozens of tenfold raises to bite again.
 const MIN_LAMBDA: f64 = 1e-12;
+/// Largest coordinate accepted for a pose or a landmark, metres: beyond it squares overflow
+/// long before any building ends.
+const MAX_COORDINATE: f64 = 1e6;
+/// Largest pixel coordinate accepted: no lens images that far out.
+const MAX_PIXEL: f64 = 1e6;
+/// Range of pixel sigmas accepted: outside it a whitened residual overflows or vanishes.
+const SIGMA_RANGE: (f64, f64) = (1e-6, 1e6);
 const ZERO3: Matrix3<f64> = Matrix3::new(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
 const ZERO_V: Vector3<f64> = Vector3::new(0.0, 0.0, 0.0);
 
@@ -139,6 +147,9 @@ pub enum WindowError {
     UnknownLandmark,
     /// A pose, point, pixel, sigma or information is not finite, or a sigma is not positive.
     NotFinite,
+    /// A finite value out of any sensible range: a coordinate beyond a thousand kilometres, a
+    /// pixel beyond a million, a sigma outside `[1e-6, 1e6]` pixels.
+    OutOfRange,
     /// The window holds no keyframe.
     Empty,
     /// No observation of a solvable landmark and no motion prior: nothing constrains the
@@ -153,6 +164,7 @@ impl fmt::Display for WindowError {
             Self::UnknownKeyframe => write!(f, "no such keyframe in the window"),
             Self::UnknownLandmark => write!(f, "no such landmark in the window"),
             Self::NotFinite => write!(f, "a value is not finite or a sigma is not positive"),
+            Self::OutOfRange => write!(f, "a value is out of range"),
             Self::Empty => write!(f, "the window holds no keyframe"),
             Self::NoMeasurements => write!(f, "nothing constrains the window"),
         }
@@ -399,7 +411,14 @@ pub(crate) fn reprojection(
     // dq/dP is the transposed heading rotation; dq/d(x, y, theta) in columns.
     let rot_t = Matrix3::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
     let dq_dpose = Matrix3::new(-c, -s, q.y, s, -c, -q.x, 0.0, 0.0, 0.0);
-    Some((predicted - px, a * dq_dpose, a * rot_t))
+    let (r, jx, jl) = (predicted - px, a * dq_dpose, a * rot_t);
+    // One NaN would poison every block it touches and stall the cost comparisons.
+    let finite = r
+        .iter()
+        .chain(jx.iter())
+        .chain(jl.iter())
+        .all(|v| v.is_finite());
+    finite.then_some((r, jx, jl))
 }
 
 /// The Huber weight and loss of a whitened residual of squared norm `e2`.
@@ -504,10 +523,14 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
     /// come first: they are the ones held fixed.
     ///
     /// # Errors
-    /// [`WindowError::Full`], or [`WindowError::NotFinite`] for a non-finite pose.
+    /// [`WindowError::Full`], [`WindowError::NotFinite`] for a non-finite pose, or
+    /// [`WindowError::OutOfRange`].
     pub fn push_pose(&mut self, pose: Se2) -> Result<usize, WindowError> {
         if !pose.is_finite() {
             return Err(WindowError::NotFinite);
+        }
+        if pose.x.abs() > MAX_COORDINATE || pose.y.abs() > MAX_COORDINATE {
+            return Err(WindowError::OutOfRange);
         }
         let index = self.pose_count;
         let slot = self.poses.get_mut(index).ok_or(WindowError::Full)?;
@@ -519,10 +542,14 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
     /// Adds a landmark's world position (initial guess); returns its index.
     ///
     /// # Errors
-    /// [`WindowError::Full`], or [`WindowError::NotFinite`] for a non-finite point.
+    /// [`WindowError::Full`], [`WindowError::NotFinite`] for a non-finite point, or
+    /// [`WindowError::OutOfRange`].
     pub fn push_landmark(&mut self, position: Vector3<f64>) -> Result<usize, WindowError> {
         if !position.iter().all(|v| v.is_finite()) {
             return Err(WindowError::NotFinite);
+        }
+        if position.amax() > MAX_COORDINATE {
+            return Err(WindowError::OutOfRange);
         }
         let index = self.landmark_count;
         let slot = self.landmarks.get_mut(index).ok_or(WindowError::Full)?;
@@ -538,8 +565,8 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
     ///
     /// # Errors
     /// [`WindowError::Full`], [`WindowError::UnknownKeyframe`],
-    /// [`WindowError::UnknownLandmark`], or [`WindowError::NotFinite`] for a non-finite pixel
-    /// or a sigma that is not positive and finite.
+    /// [`WindowError::UnknownLandmark`], [`WindowError::NotFinite`] for a non-finite pixel
+    /// or a sigma that is not positive and finite, or [`WindowError::OutOfRange`].
     pub fn push_observation(&mut self, obs: PixelObservation) -> Result<(), WindowError> {
         let finite = obs.px.x.is_finite()
             && obs.px.y.is_finite()
@@ -547,6 +574,12 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
             && obs.sigma_px > 0.0;
         if !finite {
             return Err(WindowError::NotFinite);
+        }
+        let in_range = obs.px.amax() <= MAX_PIXEL
+            && obs.sigma_px >= SIGMA_RANGE.0
+            && obs.sigma_px <= SIGMA_RANGE.1;
+        if !in_range {
+            return Err(WindowError::OutOfRange);
         }
         if obs.keyframe >= self.pose_count {
             return Err(WindowError::UnknownKeyframe);

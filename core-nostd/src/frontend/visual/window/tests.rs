@@ -672,6 +672,30 @@ fn degenerate_inputs_are_refused_or_flagged() {
     ] {
         assert_eq!(w.push_observation(bad), Err(WindowError::NotFinite));
     }
+    for bad in [
+        PixelObservation {
+            px: Vector2::new(1e300, 1.0),
+            ..good
+        },
+        PixelObservation {
+            sigma_px: 1e-300,
+            ..good
+        },
+        PixelObservation {
+            sigma_px: 1e300,
+            ..good
+        },
+    ] {
+        assert_eq!(w.push_observation(bad), Err(WindowError::OutOfRange));
+    }
+    assert_eq!(
+        w.push_landmark(Vector3::new(0.0, 0.0, -1e300)),
+        Err(WindowError::OutOfRange)
+    );
+    assert_eq!(
+        w.push_pose(Se2::new(1e7, 0.0, 0.0)),
+        Err(WindowError::OutOfRange)
+    );
     assert_eq!(
         w.push_observation(PixelObservation {
             keyframe: 2,
@@ -733,8 +757,8 @@ fn degenerate_inputs_are_refused_or_flagged() {
     );
 
     // A real scene with four kinds of bad landmark added: seen once, seen along the same
-    // ray twice (from two keyframes at one place), behind the camera, and a million metres
-    // up (no parallax from 25 cm).
+    // ray twice (from two keyframes at one place), behind the camera, and 200 km away (no
+    // parallax from 25 cm).
     let mut poses = room.poses.clone();
     let same_place = poses.len();
     poses.push(room.poses[0]);
@@ -761,7 +785,7 @@ fn degenerate_inputs_are_refused_or_flagged() {
     let behind = points.len();
     points.push(Vector3::new(-3.0, 0.0, 0.5));
     let far = points.len();
-    let far_point = Vector3::new(1.0e6, 0.0, 1.7e6);
+    let far_point = Vector3::new(1.0e5, 0.0, 1.7e5);
     points.push(far_point);
     for (k, pose) in poses.iter().enumerate().take(2) {
         obs.push(PixelObservation {
