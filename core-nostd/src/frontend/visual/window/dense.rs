@@ -29,8 +29,9 @@ fn set_v<const N: usize>(v: &mut [Vector3<f64>; N], i: usize, value: f64) {
     }
 }
 
-/// Solves `A x = b` for the leading `blocks` x `blocks` blocks of the symmetric `a` (its lower
-/// triangle is read, then overwritten by the factor), `b` overwritten by `x`. `None` when `a`
+/// Solves `A x = b` for the leading `blocks` x `blocks` blocks of the symmetric `a` (only its
+/// lower triangle is read, then overwritten by the factor; the blocks above the diagonal are
+/// neither read nor written), `b` overwritten by `x`. `None` when `a`
 /// is not positive definite (a pivot not above zero, or not finite).
 pub(super) fn cholesky_solve<const N: usize>(
     a: &mut [[Matrix3<f64>; N]; N],

@@ -1087,11 +1087,17 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
             *self.reduced.get_mut(f)?.get_mut(f)? = damped(&pose.u, lambda);
             *self.reduced_rhs.get_mut(f)? = pose.b;
         }
+        // The factorisation reads only the blocks on and below the diagonal: only those are
+        // formed, which halves the landmark pairs below.
         for slot in self.priors.iter().take(self.prior_count) {
             let (a, b) = (slot.prior.from, slot.prior.to);
             if a >= fixed && b >= fixed {
-                *self.reduced.get_mut(a - fixed)?.get_mut(b - fixed)? += slot.cross;
-                *self.reduced.get_mut(b - fixed)?.get_mut(a - fixed)? += slot.cross.transpose();
+                let (a, b) = (a - fixed, b - fixed);
+                if a > b {
+                    *self.reduced.get_mut(a)?.get_mut(b)? += slot.cross;
+                } else {
+                    *self.reduced.get_mut(b)?.get_mut(a)? += slot.cross.transpose();
+                }
             }
         }
         for l in 0..self.landmark_count {
@@ -1110,7 +1116,8 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
                     *self.reduced_rhs.get_mut(ka)? -= t * b_l;
                     let mut b = first;
                     while let Some(ob) = self.observations.get(b) {
-                        if ob.status == ObservationStatus::Pending && ob.obs.keyframe >= fixed {
+                        let lower = ob.obs.keyframe >= fixed && ob.obs.keyframe - fixed <= ka;
+                        if ob.status == ObservationStatus::Pending && lower {
                             let kb = ob.obs.keyframe - fixed;
                             *self.reduced.get_mut(ka)?.get_mut(kb)? -= t * ob.w.transpose();
                         }
