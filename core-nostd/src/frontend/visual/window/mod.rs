@@ -391,9 +391,37 @@ impl<const N: usize, const M: usize, const K: usize> Default for BundleWindow<N,
     }
 }
 
-/// The predicted pixel minus the measured one, and its derivatives with respect to the robot
-/// pose `(x, y, theta)` and to the landmark, for a robot whose heading has cosine `c` and sine
-/// `s`. `None` where the camera model does not project the point.
+/// A world point in the robot frame of a robot at `pose` (on the floor, z = 0) whose heading
+/// has cosine `c` and sine `s`, and in the camera frame.
+fn robot_and_camera(
+    mount: &CameraExtrinsic,
+    pose: &Se2,
+    (c, s): (f64, f64),
+    point: &Vector3<f64>,
+) -> (Vector3<f64>, Vector3<f64>) {
+    let (dx, dy) = (point.x - pose.x, point.y - pose.y);
+    let q = Vector3::new(c * dx + s * dy, -s * dx + c * dy, point.z);
+    (q, mount.robot_to_camera(&q))
+}
+
+/// The predicted pixel minus the measured one, or `None` where the camera model does not
+/// project the point (or the result is not finite).
+pub(crate) fn residual(
+    model: &CameraModel,
+    mount: &CameraExtrinsic,
+    pose: &Se2,
+    trig: (f64, f64),
+    point: &Vector3<f64>,
+    px: &Vector2<f64>,
+) -> Option<Vector2<f64>> {
+    let (_, p_cam) = robot_and_camera(mount, pose, trig, point);
+    let r = model.project(&p_cam)? - px;
+    // A NaN would stall every cost comparison; the sum is finite only if both terms are.
+    (r.x + r.y).is_finite().then_some(r)
+}
+
+/// [`residual`] and its derivatives with respect to the robot pose `(x, y, theta)` and to the
+/// landmark.
 pub(crate) fn reprojection(
     model: &CameraModel,
     mount: &CameraExtrinsic,
@@ -402,23 +430,17 @@ pub(crate) fn reprojection(
     point: &Vector3<f64>,
     px: &Vector2<f64>,
 ) -> Option<(Vector2<f64>, Matrix2x3<f64>, Matrix2x3<f64>)> {
-    let (dx, dy) = (point.x - pose.x, point.y - pose.y);
-    // The point in the robot frame; the robot stands on the floor (z = 0).
-    let q = Vector3::new(c * dx + s * dy, -s * dx + c * dy, point.z);
-    let p_cam = mount.robot_to_camera(&q);
-    let predicted = model.project(&p_cam)?;
+    let (q, p_cam) = robot_and_camera(mount, pose, (c, s), point);
+    let r = model.project(&p_cam)? - px;
     let a = model.jacobian(&p_cam)? * mount.rotation().transpose();
     // dq/dP is the transposed heading rotation; dq/d(x, y, theta) in columns.
     let rot_t = Matrix3::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
     let dq_dpose = Matrix3::new(-c, -s, q.y, s, -c, -q.x, 0.0, 0.0, 0.0);
-    let (r, jx, jl) = (predicted - px, a * dq_dpose, a * rot_t);
-    // One NaN would poison every block it touches and stall the cost comparisons.
-    let finite = r
-        .iter()
-        .chain(jx.iter())
-        .chain(jl.iter())
-        .all(|v| v.is_finite());
-    finite.then_some((r, jx, jl))
+    let (jx, jl) = (a * dq_dpose, a * rot_t);
+    // One NaN would poison every block it touches; a sum is finite only if all terms are.
+    (r.sum() + jx.sum() + jl.sum())
+        .is_finite()
+        .then_some((r, jx, jl))
 }
 
 /// The Huber weight and loss of a whitened residual of squared norm `e2`.
@@ -862,7 +884,7 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
                 continue;
             };
             let (p, c, s) = (&pose.pose, pose.cos, pose.sin);
-            if reprojection(model, mount, p, (c, s), &lm.position, &slot.obs.px).is_none() {
+            if residual(model, mount, p, (c, s), &lm.position, &slot.obs.px).is_none() {
                 slot.status = ObservationStatus::NotProjectable;
                 continue;
             }
@@ -959,8 +981,8 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
                 continue;
             }
             let (p, c, s) = (&pose.pose, pose.cos, pose.sin);
-            let lin = reprojection(model, mount, p, (c, s), &lm.position, &slot.obs.px);
-            let chi2 = lin.map_or(f64::INFINITY, |(r, _, _)| {
+            let lin = residual(model, mount, p, (c, s), &lm.position, &slot.obs.px);
+            let chi2 = lin.map_or(f64::INFINITY, |r| {
                 r.norm_squared() / (slot.obs.sigma_px * slot.obs.sigma_px)
             });
             let status = if chi2 <= gate {
@@ -988,7 +1010,7 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
             let pose = self.poses.get(slot.obs.keyframe)?;
             let lm = self.landmarks.get(slot.obs.landmark)?;
             let (p, c, s) = (&pose.pose, pose.cos, pose.sin);
-            let (r, _, _) = reprojection(model, mount, p, (c, s), &lm.position, &slot.obs.px)?;
+            let r = residual(model, mount, p, (c, s), &lm.position, &slot.obs.px)?;
             let e2 = r.norm_squared() / (slot.obs.sigma_px * slot.obs.sigma_px);
             total += huber(e2, k).1;
         }
@@ -1214,8 +1236,8 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
                 continue;
             }
             let (p, c, s) = (&pose.pose, pose.cos, pose.sin);
-            let lin = reprojection(model, mount, p, (c, s), &lm.position, &slot.obs.px);
-            let chi2 = lin.map_or(f64::INFINITY, |(r, _, _)| {
+            let lin = residual(model, mount, p, (c, s), &lm.position, &slot.obs.px);
+            let chi2 = lin.map_or(f64::INFINITY, |r| {
                 r.norm_squared() / (slot.obs.sigma_px * slot.obs.sigma_px)
             });
             slot.chi2 = chi2;
