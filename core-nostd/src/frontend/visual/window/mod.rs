@@ -114,6 +114,9 @@ pub struct WindowConfig {
     pub max_lambda: f64,
     /// Converged when an accepted step lowers the cost by less than this fraction.
     pub cost_tolerance: f64,
+    /// The same for a round followed by a rejection round, which needs the outliers told
+    /// apart, not the last digits.
+    pub rejection_cost_tolerance: f64,
     /// Converged when no unknown moves more than this (metres or radians).
     pub step_tolerance: f64,
 }
@@ -130,6 +133,7 @@ impl Default for WindowConfig {
             initial_lambda: 1e-4,
             max_lambda: 1e8,
             cost_tolerance: 1e-6,
+            rejection_cost_tolerance: 1e-3,
             step_tolerance: 1e-6,
         }
     }
@@ -756,21 +760,39 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
             return Err(WindowError::NoMeasurements);
         }
         let initial_cost = self.cost(model, mount, cfg.huber).unwrap_or(f64::INFINITY);
-        let (mut iterations, mut termination, mut cost) =
-            self.iterate(model, mount, cfg, fixed, initial_cost, cfg.max_iterations);
+        let (mut iterations, mut cost) = (0, initial_cost);
+        let mut termination;
         // The Huber weights keep gross errors from dragging the first solution far; taking
-        // them out entirely and solving again removes the pull they still have.
-        for _ in 0..cfg.rejection_rounds {
-            if self.reclassify(model, mount, cfg.outlier_chi2) == 0 {
-                break;
-            }
-            self.classify_landmarks(model, mount, cfg.min_pivot_ratio);
-            let start = self.cost(model, mount, cfg.huber).unwrap_or(f64::INFINITY);
+        // them out entirely and solving again removes the pull they still have. A round
+        // followed by another only has to tell the outliers apart, so it stops early; under
+        // Huber weights the last digits come slowly.
+        let mut round = 0;
+        loop {
+            let last = round == cfg.rejection_rounds;
+            let round_cfg = WindowConfig {
+                cost_tolerance: if last {
+                    cfg.cost_tolerance
+                } else {
+                    cfg.rejection_cost_tolerance.max(cfg.cost_tolerance)
+                },
+                ..*cfg
+            };
             let budget = cfg.max_iterations.saturating_sub(iterations);
-            let (more, end, c) = self.iterate(model, mount, cfg, fixed, start, budget);
+            let (more, end, c) = self.iterate(model, mount, &round_cfg, fixed, cost, budget);
             iterations += more;
             termination = end;
             cost = c;
+            if last {
+                break;
+            }
+            round += 1;
+            if self.reclassify(model, mount, cfg.outlier_chi2) == 0 {
+                // Nothing to take out: finish this round's solution instead.
+                round = cfg.rejection_rounds;
+                continue;
+            }
+            self.classify_landmarks(model, mount, cfg.min_pivot_ratio);
+            cost = self.cost(model, mount, cfg.huber).unwrap_or(f64::INFINITY);
         }
         let (inliers, outliers) = self.flag(model, mount, cfg.outlier_chi2);
         let mut active = 0;

@@ -486,7 +486,9 @@ fn random_pixels_are_flagged_and_do_not_pull_the_poses_away() {
              flagged, {good} good ones kept"
         );
         assert!(caught > 50 && missed * 20 <= caught, "{caught} / {missed}");
-        assert!(false_alarms * 20 <= good, "{false_alarms} / {good}");
+        // A 95 % gate flags about one right observation in twenty by design.
+        let right = false_alarms + good;
+        assert!(false_alarms * 100 <= 7 * right, "{false_alarms} / {right}");
     }
 }
 
