@@ -782,7 +782,8 @@ impl<const N: usize, const M: usize, const K: usize> BundleWindow<N, M, K> {
             iterations += more;
             termination = end;
             cost = c;
-            if last {
+            // Without steps left, another round could only flip flags back and forth.
+            if last || iterations >= cfg.max_iterations {
                 break;
             }
             round += 1;
