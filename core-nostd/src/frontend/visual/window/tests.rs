@@ -872,6 +872,24 @@ fn a_full_window_solves_and_refuses_more() {
     };
     w.push_motion_prior(extra).unwrap();
     assert_eq!(w.push_motion_prior(extra), Err(WindowError::Full));
+    // No iteration allowed, however many rounds: the start is kept and still reported on.
+    let frozen = WindowConfig {
+        max_iterations: 0,
+        rejection_rounds: u32::MAX,
+        ..WindowConfig::default()
+    };
+    let summary = w.solve(&room.model, &room.mount, &frozen).unwrap();
+    assert_eq!(summary.termination, Termination::IterationLimit);
+    assert_eq!(summary.iterations, 0);
+    assert_eq!(summary.initial_cost, summary.final_cost);
+    assert_eq!(
+        w.landmark(0),
+        Some(room.points[0] + Vector3::new(0.02, -0.01, 0.03))
+    );
+    let skipped = (0..30)
+        .filter(|&i| w.observation_report(i).unwrap().status == ObservationStatus::Skipped)
+        .count();
+    assert_eq!(summary.inliers + summary.outliers + skipped, 30);
     let summary = w
         .solve(&room.model, &room.mount, &WindowConfig::default())
         .unwrap();
