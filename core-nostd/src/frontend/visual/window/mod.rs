@@ -369,10 +369,10 @@ const EMPTY_PRIOR: PriorSlot = PriorSlot {
 /// with the solver's working storage.
 ///
 /// Its size grows as `N^2` (the dense reduced system, 72 bytes per pair of keyframes) plus
-/// linear terms; on a 64-bit host, 184 bytes per keyframe and as many per prior, 24 per
-/// reduced right-hand side, 256 per landmark and 136 per observation (a 32-bit target's
-/// indices are smaller). `tests::slot_sizes` pins them. The value is large: build it where it
-/// will live (a `static`, or a resources value the caller owns), not as a local.
+/// linear terms: 184 bytes per keyframe, 24 per reduced right-hand side, and per prior,
+/// landmark and observation 184, 256 and 136 bytes on x86-64 (176, 248 and 120 on ARMv7,
+/// whose indices are half as wide); `tests::slot_sizes` pins them. The value is large: build
+/// it where it will live (a `static`, or a resources value the caller owns), not as a local.
 #[derive(Clone, Debug)]
 pub struct BundleWindow<const N: usize, const M: usize, const K: usize> {
     poses: [PoseSlot; N],
