@@ -58,21 +58,28 @@ pub(crate) fn mul_tv(m: &Block, v: &Vec3) -> Vec3 {
 /// or `None` when `a` is not positive definite.
 #[inline]
 pub(crate) fn chol_inverse(a: &Block) -> Option<Block> {
+    chol_inverse_above(a, 0.0)
+}
+
+/// [`chol_inverse`], refused also when a pivot is not above `floor` (a block too close to
+/// singular for its use, e.g. a landmark seen with too little parallax).
+#[inline]
+pub(crate) fn chol_inverse_above(a: &Block, floor: f64) -> Option<Block> {
     let d0 = a[0];
-    if d0.is_nan() || d0 <= 0.0 {
+    if d0.is_nan() || d0 <= floor {
         return None;
     }
     let l00 = libm::sqrt(d0);
     let l10 = a[3] / l00;
     let l20 = a[6] / l00;
     let d1 = a[4] - l10 * l10;
-    if d1.is_nan() || d1 <= 0.0 {
+    if d1.is_nan() || d1 <= floor {
         return None;
     }
     let l11 = libm::sqrt(d1);
     let l21 = (a[7] - l20 * l10) / l11;
     let d2 = a[8] - l20 * l20 - l21 * l21;
-    if !d2.is_finite() || d2 <= 0.0 {
+    if !d2.is_finite() || d2 <= floor {
         return None;
     }
     let l22 = libm::sqrt(d2);

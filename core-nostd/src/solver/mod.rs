@@ -54,6 +54,7 @@ mod ordering;
 mod resumable;
 mod workspace;
 
+pub(crate) use cholesky::chol_inverse_above;
 pub use marginals::marginal_information_traces;
 pub use options::{Method, SolveError, SolveFailure, SolveReport, SolverOptions, AUTO_LM_TAU};
 pub use resumable::{work, ChunkedSolve, Progress};

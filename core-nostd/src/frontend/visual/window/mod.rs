@@ -478,34 +478,20 @@ fn prior_residual(
 /// below `ratio` times the largest diagonal term (or is not positive).
 fn spd3_inverse(m: &Matrix3<f64>, ratio: f64) -> Option<Matrix3<f64>> {
     let scale = m[(0, 0)].max(m[(1, 1)]).max(m[(2, 2)]);
-    let floor = ratio * scale;
-    let ok = |d: f64| d.is_finite() && d > floor && d > 0.0;
-    let d0 = m[(0, 0)];
-    if !ok(d0) {
-        return None;
-    }
-    let l00 = libm::sqrt(d0);
-    let l10 = m[(1, 0)] / l00;
-    let l20 = m[(2, 0)] / l00;
-    let d1 = m[(1, 1)] - l10 * l10;
-    if !ok(d1) {
-        return None;
-    }
-    let l11 = libm::sqrt(d1);
-    let l21 = (m[(2, 1)] - l20 * l10) / l11;
-    let d2 = m[(2, 2)] - l20 * l20 - l21 * l21;
-    if !ok(d2) {
-        return None;
-    }
-    let l22 = libm::sqrt(d2);
-    // Inverse of the lower factor, then inv(m) = inv(L)^T inv(L).
-    let i00 = 1.0 / l00;
-    let i11 = 1.0 / l11;
-    let i22 = 1.0 / l22;
-    let i10 = -l10 * i00 * i11;
-    let i21 = -l21 * i11 * i22;
-    let i20 = -(l20 * i00 + l21 * i10) * i22;
-    let li = Matrix3::new(i00, 0.0, 0.0, i10, i11, 0.0, i20, i21, i22);
+    let floor = (ratio * scale).max(0.0);
+    let rows = [
+        m[(0, 0)],
+        m[(0, 1)],
+        m[(0, 2)],
+        m[(1, 0)],
+        m[(1, 1)],
+        m[(1, 2)],
+        m[(2, 0)],
+        m[(2, 1)],
+        m[(2, 2)],
+    ];
+    let li = Matrix3::from_row_slice(&crate::solver::chol_inverse_above(&rows, floor)?);
+    // inv(m) = inv(L)^T inv(L).
     let inv = li.transpose() * li;
     inv.iter().all(|v| v.is_finite()).then_some(inv)
 }
