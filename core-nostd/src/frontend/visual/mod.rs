@@ -16,6 +16,8 @@
 //! * [`triangulate`]: a match between two frames of known pose as a 3D point.
 //! * [`two_view`]: the heading change and direction of travel between two frames from their
 //!   matches, the distance from the odometry.
+//! * [`odometry`]: feature tracks over frames, visual keyframes, triangulated landmarks and
+//!   the window solve: each keyframe's pose relative to the previous one.
 //! * [`window`]: sliding-window bundle adjustment of planar keyframe poses and 3D landmarks,
 //!   with the wheel+gyro motion as a prior between keyframes.
 //!
@@ -29,6 +31,7 @@ pub mod fast;
 pub mod frame;
 pub mod image;
 pub mod matching;
+pub mod odometry;
 pub mod pyramid;
 pub mod track;
 pub mod triangulate;
@@ -41,6 +44,9 @@ pub use fast::{detect, detect_pyramid, DetectStats, FastConfig, Keypoint};
 pub use frame::{FrameError, FrameFeatures};
 pub use image::{smooth_into, smoothed_bytes, GrayImage};
 pub use matching::{match_brute_force, match_guided, Match, MatchConfig, MatchStats};
+pub use odometry::{
+    KeyframeOutput, KeyframeReason, VisualOdometry, VoConfig, VoError, VoFrame, VoStats, VoStep,
+};
 pub use pyramid::{pyramid_bytes, Pyramid, PyramidError};
 pub use track::{CameraTrack, TrackConfig, TrackError, TrackScratch, TrackStats, TrackStep};
 pub use window::{
