@@ -56,7 +56,9 @@ use super::camera::{CameraExtrinsic, CameraModel};
 use super::fast::Keypoint;
 use super::frame::MAX_FEATURES;
 use super::matching::Match;
-use super::triangulate::{triangulate, CameraPose, Observation, TriangulateConfig, WorldPoint};
+use super::triangulate::{
+    triangulate, CameraPose, Observation, TriangulateConfig, TriangulateError, WorldPoint,
+};
 use super::window::{
     BundleWindow, LandmarkStatus, MotionPrior, ObservationStatus, PixelObservation, WindowConfig,
     WindowError, WindowSummary,
@@ -78,11 +80,13 @@ pub struct VoConfig {
     /// Wheel+gyro heading change since the last keyframe that makes a keyframe, radians.
     pub keyframe_heading: f64,
     /// Fewer surviving tracks of the last keyframe than this (and fewer than half of them)
-    /// makes a keyframe.
+    /// makes a keyframe (20: the paper's feature count below which a feature-only system
+    /// fails).
     pub min_tracked: usize,
     /// Standard normal quantile of the redundancy test (1.645: the 95 % point).
     pub redundancy_z: f64,
-    /// Standard deviation of a level-0 feature position, pixels (doubled per pyramid level).
+    /// Standard deviation of a level-0 feature position, pixels (doubled per pyramid level;
+    /// 0.5: a FAST corner sits on its level's pixel grid).
     pub sigma_px: f64,
     /// Wheel+gyro noise between keyframes: position standard deviation, metres, a floor plus
     /// a share of the distance.
@@ -104,12 +108,17 @@ impl Default for VoConfig {
         VoConfig {
             keyframe_distance: 0.25,
             keyframe_heading: 10f64.to_radians(),
-            min_tracked: 30,
+            min_tracked: 20,
             redundancy_z: 1.645,
-            sigma_px: 1.0,
+            sigma_px: 0.5,
             odometry_sigma_xy: [0.005, 0.05],
             odometry_sigma_theta: [0.002, 0.02, 0.05],
-            triangulate: TriangulateConfig::default(),
+            // A first guess the window refines: a quarter of the depth is close enough for it
+            // to converge, and a tenth would wait for baselines that short tracks never reach.
+            triangulate: TriangulateConfig {
+                max_relative_depth_error: 0.25,
+                ..TriangulateConfig::default()
+            },
             max_range: 20.0,
             window: WindowConfig::default(),
         }
@@ -229,7 +238,10 @@ pub struct VoStats {
     pub bad_pixels: u32,
     /// Landmarks triangulated.
     pub landmarks: u32,
-    /// Tracks not triangulated: too little parallax, rays missing each other, or behind.
+    /// Tracks not triangulated for too little parallax between their two keyframes.
+    pub low_parallax: u32,
+    /// Tracks not triangulated otherwise: rays missing each other, behind a camera, no ray,
+    /// or out of [`VoConfig::max_range`].
     pub triangulation_refused: u32,
     /// Landmarks or observations that found no room (landmark or observation storage full).
     pub capacity_dropped: u32,
@@ -376,6 +388,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                 bad_matches: 0,
                 bad_pixels: 0,
                 landmarks: 0,
+                low_parallax: 0,
                 triangulation_refused: 0,
                 capacity_dropped: 0,
                 outliers_dropped: 0,
@@ -657,9 +670,16 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                 &cfg.triangulate,
             );
             let in_range = |p: &WorldPoint| (p.position - pose_b.centre).norm() <= cfg.max_range;
-            let Some(point) = result.ok().filter(in_range) else {
-                self.stats.triangulation_refused += 1;
-                continue;
+            let point = match result {
+                Ok(p) if in_range(&p) => p,
+                Err(TriangulateError::LowParallax) => {
+                    self.stats.low_parallax += 1;
+                    continue;
+                }
+                _ => {
+                    self.stats.triangulation_refused += 1;
+                    continue;
+                }
             };
             // Appended after the sorted ones; sorted below, so lookups here see only the old.
             match self.landmarks.get_mut(count) {
