@@ -16,7 +16,7 @@
 //! * [`frontend`]: odometry fusion, scan preprocessing, occupancy-grid submaps, ICP, the
 //!   correlative loop-closure search and the keyframe decision (paper section III-B), and the
 //!   image front-end's building blocks (camera models, pyramid, corners, descriptors,
-//!   matching, triangulation, the sliding-window bundle adjustment).
+//!   matching, triangulation, the sliding-window bundle adjustment, the visual odometry).
 //! * [`mapper`]: the LiDAR mapper assembled from all of the above: front-end, frame nodes,
 //!   loop closure, GPE with the worst-case prediction, and the back-end in bounded steps.
 //! * [`profile`]: the memory profiles and the resources value that owns all storage.

@@ -2,7 +2,8 @@
 //! occupancy-grid submaps, scan matching (ICP for odometry and refinement, a correlative
 //! branch-and-bound search for loop closures) and the keyframe decision; and the image
 //! front-end under [`visual`] (camera models, pyramid, corners, descriptors, matching,
-//! triangulation, and the sliding-window bundle adjustment of the visual odometry).
+//! triangulation, the sliding-window bundle adjustment, and the visual odometry that joins
+//! them).
 //!
 //! Every type here works on caller-provided or fixed-capacity storage; nothing allocates and
 //! nothing reads a clock. Scan points and grid cells are `f32`, poses `f64`.

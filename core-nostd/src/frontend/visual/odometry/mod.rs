@@ -859,7 +859,11 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
 
     /// Drops the oldest keyframe and the landmarks no remaining keyframe sees.
     fn slide(&mut self) {
-        let Some(kfs) = self.keyframes.get_mut(..self.keyframe_count) else {
+        let Some(kfs) = self
+            .keyframes
+            .get_mut(..self.keyframe_count)
+            .filter(|k| !k.is_empty())
+        else {
             return;
         };
         kfs.rotate_left(1);

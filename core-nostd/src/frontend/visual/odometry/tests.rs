@@ -424,3 +424,43 @@ proptest::proptest! {
         proptest::prop_assert!(vo.keyframe_count() <= 3 && vo.landmark_count() <= 16);
     }
 }
+
+/// What the odometry costs besides its window: per keyframe slot, [`MAX_FEATURES`] features
+/// of 16 bytes and two poses; per landmark a track id and a point; per observation slot the
+/// keyframe and feature it came from; and two frames of track ids.
+#[test]
+fn sizes() {
+    type Small = VisualOdometry<3, 16, 64>;
+    let window = size_of::<BundleWindow<3, 16, 64>>();
+    assert_eq!(size_of::<KeyFeature>(), 16);
+    assert_eq!(size_of::<Landmark>(), 32);
+    assert_eq!(size_of::<ObservationSource>(), 4);
+    let own = 3 * size_of::<Keyframe>() + 16 * 32 + 64 * 4 + 2 * MAX_FEATURES * 4;
+    assert!(size_of::<Small>() >= window + own);
+    assert!(size_of::<Small>() <= window + own + 128);
+}
+
+/// A window with room for nothing refuses nothing and panics on nothing.
+#[test]
+fn an_empty_window_takes_frames() {
+    let (model, mount) = cleaner_camera();
+    let mut vo = VisualOdometry::<0, 0, 0>::new();
+    let points = [kp(10.0, 10.0), kp(50.0, 60.0)];
+    let same = [Match {
+        query: 0,
+        train: 0,
+        distance: 0,
+    }];
+    for (stamp, x) in [(1, 0.0), (2, 1.0), (3, 2.0)] {
+        let frame = VoFrame {
+            stamp,
+            odometry: Se2::new(x, 0.0, 0.0),
+            keypoints: &points,
+            matches: &same,
+        };
+        let step = vo.process(&frame, &model, &mount, &VoConfig::default());
+        let k = step.expect("accepted").keyframe.expect("a keyframe");
+        assert_eq!(k.solve, Err(WindowError::Full));
+    }
+    assert_eq!(vo.keyframe_count(), 0);
+}
