@@ -1,15 +1,15 @@
 //! The core's visual odometry (`cloi_core::frontend::visual::odometry`) on the simulator's
 //! rendered camera frames of the home world, against its exact ground truth (issue 16).
 //!
-//! The first [`DURATION`] seconds of the home's own route are simulated with the cleaner's
+//! The first [`DURATION`] seconds of the home's own route are simulated (three seeds) with the cleaner's
 //! single ceiling-tilted fisheye (320 x 240, 10 Hz). Every frame goes through the product's
 //! path: `CameraTrack` extracts its features and matches them to the previous frame, and the
 //! odometry takes those matches with the simulator's wheel+gyro pose at the frame's time. At
 //! each keyframe the chain of the odometry's relative poses, and the wheel+gyro pose, are
 //! compared with the true pose, all expressed in the first keyframe's frame.
 //!
-//! `cargo test --release -p cloi-host --test visual_odometry_sim -- --nocapture` prints the
-//! figures.
+//! `cargo test -p cloi-host --test visual_odometry_sim -- --nocapture` prints the figures
+//! (under a minute in a debug build).
 
 mod visual_sim;
 
@@ -71,14 +71,14 @@ struct Run {
     turned: f64,
 }
 
-fn run_home() -> Run {
+fn run_home(seed: u64) -> Run {
     let mut world = World::from_file(&builtin::builtin("home", DURATION).expect("home"));
     world.faults.clear();
     let sim = Simulation::new(
         world,
         SimConfig {
             duration: DURATION,
-            seed: 3,
+            seed,
             sensors: SensorSet::Camera,
             ..SimConfig::default()
         },
@@ -160,7 +160,7 @@ fn run_home() -> Run {
     r.vo = errors(&est, &truth);
     r.odometry = errors(&odo, &truth);
     eprintln!(
-        "home, first {DURATION} s: {} frames, {:.2} m driven, {:.1} deg turned; {} keyframes, \
+        "home, seed {seed}, first {DURATION} s: {} frames, {:.2} m driven, {:.1} deg turned; {} keyframes, \
          {:.1} landmarks seen per keyframe, {} outlying observations and {} landmarks dropped, \
          {} failed solves",
         r.frames,
@@ -188,23 +188,36 @@ fn run_home() -> Run {
     r
 }
 
+/// Three seeds of the simulator (its sensor noise), each asserted on its own for the figures
+/// the visual odometry clearly improves, and together for the mean heading error, where its
+/// gain is small: about five landmarks per keyframe (the frame-to-frame tracks are short) do
+/// not outweigh the wheel+gyro prior by much.
 #[test]
 fn home_visual_odometry_is_not_worse_than_the_wheels() {
-    let r = std::thread::Builder::new()
+    let runs = std::thread::Builder::new()
         .stack_size(64 << 20)
-        .spawn(run_home)
+        .spawn(|| (1..=3).map(run_home).collect::<Vec<_>>())
         .expect("thread")
         .join()
         .expect("no panic");
-    assert!(r.keyframes >= 10, "{r:?}");
-    assert!(r.distance >= 2.0, "{r:?}");
-    assert!(
-        r.vo.heading_max <= r.odometry.heading_max + 0.5f64.to_radians(),
-        "{r:?}"
+    for r in &runs {
+        assert!(r.keyframes >= 10, "{r:?}");
+        assert!(r.distance >= 2.0, "{r:?}");
+        // Short tracks (frame-to-frame brute-force matches) still give some landmarks.
+        assert!(r.landmarks_seen >= 2 * r.keyframes, "{r:?}");
+        assert!(r.vo.heading_max <= r.odometry.heading_max, "{r:?}");
+        assert!(r.vo.position_mean <= r.odometry.position_mean, "{r:?}");
+        assert!(r.vo.position_max <= r.odometry.position_max + 0.02, "{r:?}");
+    }
+    let mean = |f: fn(&Run) -> f64| runs.iter().map(f).sum::<f64>() / runs.len() as f64;
+    let (vo, odo) = (
+        mean(|r| r.vo.heading_mean),
+        mean(|r| r.odometry.heading_mean),
     );
-    assert!(r.vo.position_max <= r.odometry.position_max + 0.02, "{r:?}");
-    assert!(r.vo.heading_mean <= r.odometry.heading_mean, "{r:?}");
-    assert!(r.vo.position_mean <= r.odometry.position_mean, "{r:?}");
-    // Short tracks (frame-to-frame brute-force matches) still give some landmarks.
-    assert!(r.landmarks_seen >= 2 * r.keyframes, "{r:?}");
+    eprintln!(
+        "mean heading error over the seeds: VO {:.2} deg, wheel+gyro {:.2} deg",
+        vo.to_degrees(),
+        odo.to_degrees()
+    );
+    assert!(vo <= odo, "{runs:?}");
 }
