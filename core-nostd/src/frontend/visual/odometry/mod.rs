@@ -49,6 +49,9 @@
 //! its features still become the previous frame of the next one (the camera's track moved on),
 //! and without matches every feature starts a new track. Matches naming features that do not
 //! exist, and features whose pixel is not finite, are skipped and counted.
+//!
+//! Nothing here allocates or recurses: features and landmarks are kept sorted by track id with
+//! [`crate::sort`], and looked up by binary search.
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 
@@ -298,7 +301,7 @@ impl Keyframe {
     /// Removes the features whose track was set to [`NO_TRACK`] (they sort last).
     fn compact(&mut self) {
         let f = self.features.get_mut(..self.len).unwrap_or_default();
-        f.sort_unstable_by_key(|k| k.track);
+        crate::sort::sort_by_key(f, |k| k.track);
         self.len = f.iter().take_while(|k| k.track != NO_TRACK).count();
     }
 }
@@ -695,7 +698,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         }
         self.landmark_count = count;
         if let Some(l) = self.landmarks.get_mut(..count) {
-            l.sort_unstable_by_key(|l| l.track);
+            crate::sort::sort_by_key(l, |l| l.track);
         }
         let added = count - before;
         self.stats.landmarks += u32::try_from(added).unwrap_or(u32::MAX);
@@ -885,7 +888,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
             .landmarks
             .get_mut(..self.landmark_count)
             .unwrap_or_default();
-        l.sort_unstable_by_key(|l| l.track);
+        crate::sort::sort_by_key(l, |l| l.track);
         self.landmark_count = l.iter().take_while(|l| l.track != NO_TRACK).count();
     }
 }
