@@ -45,7 +45,8 @@
 //! # Bad input
 //! A frame whose stamp does not advance is refused and leaves every state as it was (as
 //! [`CameraTrack`](super::CameraTrack) refuses it too). A frame with a pose that is not finite,
-//! without features, or without a single match to the previous frame is refused and counted;
+//! without features, or (once there is a keyframe) without a single match to the previous
+//! frame is refused and counted;
 //! its features still become the previous frame of the next one (the camera's track moved on),
 //! and without matches every feature starts a new track. Matches naming features that do not
 //! exist, and features whose pixel is not finite, are skipped and counted.

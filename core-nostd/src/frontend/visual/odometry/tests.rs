@@ -464,3 +464,50 @@ fn an_empty_window_takes_frames() {
     }
     assert_eq!(vo.keyframe_count(), 0);
 }
+
+/// Wheels slipping on a stuck robot: the odometry runs on, the image stands still. The motion
+/// rule asks for keyframes, the redundancy test refuses them; then the image moves and the
+/// next frame is a keyframe.
+#[test]
+fn a_frame_that_sees_what_the_keyframe_saw_is_redundant() {
+    let (model, mount) = cleaner_camera();
+    let cfg = VoConfig::default();
+    let mut vo = Box::new(VisualOdometry::<3, 64, 256>::new());
+    let still: Vec<Keypoint> = (0..40)
+        .map(|i| kp(20.0 + 7.0 * i as f32, 30.0 + 4.0 * i as f32))
+        .collect();
+    let same: Vec<Match> = (0..40)
+        .map(|i| Match {
+            query: i,
+            train: i,
+            distance: 0,
+        })
+        .collect();
+    let mut keyframes = 0;
+    for i in 0..10 {
+        let frame = VoFrame {
+            stamp: i,
+            odometry: Se2::new(0.1 * i as f64, 0.0, 0.0),
+            keypoints: &still,
+            matches: &same,
+        };
+        let step = vo.process(&frame, &model, &mount, &cfg).expect("accepted");
+        keyframes += usize::from(step.keyframe.is_some());
+    }
+    assert_eq!(keyframes, 1);
+    // From 0.3 m on, seven frames were past the keyframe distance.
+    assert_eq!(vo.stats().redundant, 7);
+    // Each feature moves 2 px: beyond half-pixel noise, no longer redundant.
+    let moved: Vec<Keypoint> = still.iter().map(|k| kp(k.x + 2.0, k.y)).collect();
+    let frame = VoFrame {
+        stamp: 10,
+        odometry: Se2::new(1.0, 0.0, 0.0),
+        keypoints: &moved,
+        matches: &same,
+    };
+    let step = vo.process(&frame, &model, &mount, &cfg).expect("accepted");
+    assert_eq!(
+        step.keyframe.map(|k| k.reason),
+        Some(KeyframeReason::Motion)
+    );
+}
