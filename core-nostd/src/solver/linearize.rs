@@ -8,7 +8,7 @@
 //! `R(a_z)^T [t_y, -t_x]` of the translation part.
 
 use super::ordering::{NO_SLOT, TRANSPOSED};
-use super::workspace::{Block, Vec3};
+use super::workspace::{rows_of, Block, Vec3};
 use super::SolverBuffers;
 use crate::graph::residual::{prior_residual, relative_residual};
 use crate::graph::{EdgeKind, PoseEdge, PoseNode};
@@ -39,18 +39,7 @@ pub(crate) fn quad(m: &Block, e: &Vec3) -> f64 {
 /// The information of an edge as a block.
 #[inline(always)]
 pub(crate) fn info_block(edge: &PoseEdge) -> Block {
-    let m = &edge.information;
-    [
-        m[(0, 0)],
-        m[(0, 1)],
-        m[(0, 2)],
-        m[(1, 0)],
-        m[(1, 1)],
-        m[(1, 2)],
-        m[(2, 0)],
-        m[(2, 1)],
-        m[(2, 2)],
-    ]
+    rows_of(&edge.information)
 }
 
 /// Whether `edge` takes part while only nodes below `limit` may close loops.

@@ -58,6 +58,7 @@ pub(crate) use cholesky::chol_inverse_above;
 pub use marginals::marginal_information_traces;
 pub use options::{Method, SolveError, SolveFailure, SolveReport, SolverOptions, AUTO_LM_TAU};
 pub use resumable::{work, ChunkedSolve, Progress};
+pub(crate) use workspace::rows_of;
 pub use workspace::{AnalysisKey, Block, SolverBuffers, SolverWorkspace, Vec3};
 
 use crate::graph::{PoseEdge, PoseGraph, PoseNode, RobustKernel};

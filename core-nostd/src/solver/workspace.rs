@@ -6,6 +6,22 @@ use crate::geom::Se2;
 
 /// A 3x3 block, row major.
 pub type Block = [f64; 9];
+
+/// The rows of `m`, one after another: a 3x3 matrix in the layout of a [`Block`].
+#[inline(always)]
+pub(crate) fn rows_of(m: &nalgebra::Matrix3<f64>) -> Block {
+    [
+        m[(0, 0)],
+        m[(0, 1)],
+        m[(0, 2)],
+        m[(1, 0)],
+        m[(1, 1)],
+        m[(1, 2)],
+        m[(2, 0)],
+        m[(2, 1)],
+        m[(2, 2)],
+    ]
+}
 /// A 3-vector.
 pub type Vec3 = [f64; 3];
 

@@ -479,17 +479,7 @@ fn prior_residual(
 fn spd3_inverse(m: &Matrix3<f64>, ratio: f64) -> Option<Matrix3<f64>> {
     let scale = m[(0, 0)].max(m[(1, 1)]).max(m[(2, 2)]);
     let floor = (ratio * scale).max(0.0);
-    let rows = [
-        m[(0, 0)],
-        m[(0, 1)],
-        m[(0, 2)],
-        m[(1, 0)],
-        m[(1, 1)],
-        m[(1, 2)],
-        m[(2, 0)],
-        m[(2, 1)],
-        m[(2, 2)],
-    ];
+    let rows = crate::solver::rows_of(m);
     let li = Matrix3::from_row_slice(&crate::solver::chol_inverse_above(&rows, floor)?);
     // inv(m) = inv(L)^T inv(L).
     let inv = li.transpose() * li;
