@@ -134,12 +134,15 @@ fn run_home(seed: u64) -> Run {
         let Ok(step) = track.track(stamp, &view, &tcfg, &mut scratch) else {
             continue;
         };
-        let keypoints = track.newest().map(|f| f.keypoints()).unwrap_or_default();
+        let newest = track.newest();
+        let keypoints = newest.map(|f| f.keypoints()).unwrap_or_default();
+        let descriptors = newest.map(|f| f.descriptors()).unwrap_or_default();
         let frame = VoFrame {
             stamp,
             odometry: wheel,
             keypoints,
             matches: &matches[..step.tracked],
+            descriptors,
         };
         r.frames += 1;
         let Ok(out) = vo.process(&frame, &model, &mount, &cfg) else {
@@ -190,8 +193,9 @@ fn run_home(seed: u64) -> Run {
 
 /// Three seeds of the simulator (its sensor noise), each asserted on its own for the figures
 /// the visual odometry clearly improves, and together for the mean heading error, where its
-/// gain is small: about five landmarks per keyframe (the frame-to-frame tracks are short) do
-/// not outweigh the wheel+gyro prior by much.
+/// gain is smaller: about a dozen landmarks per keyframe (tracks continued by re-finding the
+/// window's landmarks, but most new tracks still too short for triangulation) do not outweigh
+/// the wheel+gyro prior by much.
 #[test]
 fn home_visual_odometry_is_not_worse_than_the_wheels() {
     let runs = std::thread::Builder::new()
@@ -203,8 +207,8 @@ fn home_visual_odometry_is_not_worse_than_the_wheels() {
     for r in &runs {
         assert!(r.keyframes >= 10, "{r:?}");
         assert!(r.distance >= 2.0, "{r:?}");
-        // Short tracks (frame-to-frame brute-force matches) still give some landmarks.
-        assert!(r.landmarks_seen >= 2 * r.keyframes, "{r:?}");
+        // Re-finding the window's landmarks in each keyframe keeps about a dozen in sight.
+        assert!(r.landmarks_seen >= 8 * r.keyframes, "{r:?}");
         assert!(r.vo.heading_max <= r.odometry.heading_max, "{r:?}");
         assert!(r.vo.position_mean <= r.odometry.position_mean, "{r:?}");
         assert!(r.vo.position_max <= r.odometry.position_max + 0.02, "{r:?}");

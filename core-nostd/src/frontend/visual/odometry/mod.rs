@@ -27,15 +27,25 @@
 //! # Per keyframe
 //! 1. The keyframe's first pose is the previous keyframe's refined pose composed with the
 //!    wheel+gyro motion between them.
-//! 2. Each of its tracks without a landmark is triangulated from the oldest keyframe of the
+//! 2. The window's landmarks that no feature of the frame continues are searched for again:
+//!    each is projected with that first pose through the mounting and the camera model, and
+//!    its descriptor (that of its latest sighting in a keyframe) is matched by
+//!    [`match_guided`] within [`VoConfig::refind_radius_px`] of the prediction, against the
+//!    features whose track started after the last keyframe. A feature so matched continues
+//!    the landmark's track instead of starting a new one. A feature missed in a single frame
+//!    would otherwise end its track for good: a longer track gives its landmark more
+//!    observations, over wider baselines (the parallax that fixes its depth), and it is what
+//!    the paper's low-feature measure of dropping landmarks seen in fewer than four keyframes
+//!    presupposes. Tracks not yet triangulated keep no descriptor and are not re-found.
+//! 3. Each of its tracks without a landmark is triangulated from the oldest keyframe of the
 //!    window that saw it (the widest baseline) and this one; pairs with too little parallax
 //!    or rays that miss each other are left for a later keyframe.
-//! 3. The window is filled with the keyframes (oldest first), their landmarks, every sighting
+//! 4. The window is filled with the keyframes (oldest first), their landmarks, every sighting
 //!    of a landmark in a keyframe, and the wheel+gyro motion priors between consecutive
 //!    keyframes (information from [`VoConfig`]'s noise model), then solved.
-//! 4. Observations the solve flags as outliers are dropped from their keyframe, and landmarks
+//! 5. Observations the solve flags as outliers are dropped from their keyframe, and landmarks
 //!    with more outlying than inlying sightings are dropped: a wrong match or a moving object.
-//! 5. When the window is full, the oldest keyframe leaves it before the next one enters, with
+//! 6. When the window is full, the oldest keyframe leaves it before the next one enters, with
 //!    the landmarks no remaining keyframe sees. The oldest keyframe left is held fixed at its
 //!    last solved pose (the gauge); nothing of the dropped keyframe is marginalised into a
 //!    prior yet, so the information it carried about the others is lost.
@@ -56,10 +66,11 @@
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 
+use super::brief::Descriptor;
 use super::camera::{CameraExtrinsic, CameraModel};
 use super::fast::Keypoint;
 use super::frame::MAX_FEATURES;
-use super::matching::Match;
+use super::matching::{match_guided, Match, MatchConfig};
 use super::triangulate::{
     triangulate, CameraPose, Observation, TriangulateConfig, TriangulateError, WorldPoint,
 };
@@ -105,6 +116,11 @@ pub struct VoConfig {
     pub max_range: f64,
     /// The window solve (at least one pose is always held fixed).
     pub window: WindowConfig,
+    /// Radius around a landmark's predicted pixel in a new keyframe within which its
+    /// descriptor is searched, level-0 pixels (0 turns the re-finding off).
+    pub refind_radius_px: f32,
+    /// Acceptance of a re-found landmark (distance and ratio tests of the guided matcher).
+    pub refind: MatchConfig,
 }
 
 impl Default for VoConfig {
@@ -125,6 +141,10 @@ impl Default for VoConfig {
             },
             max_range: 20.0,
             window: WindowConfig::default(),
+            // The wheel+gyro prediction over one keyframe's motion (a quarter metre, ten
+            // degrees) moves a ceiling point by a few pixels at most on the 320 x 240 fisheye.
+            refind_radius_px: 8.0,
+            refind: MatchConfig::default(),
         }
     }
 }
@@ -142,6 +162,10 @@ pub struct VoFrame<'a> {
     /// Matches to the previous frame given to the odometry: `query` indexes its keypoints,
     /// `train` this frame's (what [`CameraTrack::track`](super::CameraTrack::track) writes).
     pub matches: &'a [Match],
+    /// The frame's descriptors, one per keypoint
+    /// ([`FrameFeatures::descriptors`](super::FrameFeatures::descriptors)); empty, the window's
+    /// landmarks are not searched for in the frame.
+    pub descriptors: &'a [Descriptor],
 }
 
 /// Why a frame was refused (each counted in [`VoStats`]).
@@ -199,6 +223,8 @@ pub struct KeyframeOutput {
     pub landmarks_seen: usize,
     /// Landmarks triangulated at this keyframe.
     pub new_landmarks: usize,
+    /// Landmarks whose track had broken, re-found in this keyframe near their predicted pixel.
+    pub refound: usize,
     /// Observations dropped as outliers by this keyframe's solve.
     pub outliers_dropped: usize,
     /// Landmarks dropped because most of their sightings were outliers.
@@ -242,6 +268,8 @@ pub struct VoStats {
     pub bad_pixels: u32,
     /// Landmarks triangulated.
     pub landmarks: u32,
+    /// Landmarks re-found in a keyframe after their track had broken.
+    pub refound: u32,
     /// Tracks not triangulated for too little parallax between their two keyframes.
     pub low_parallax: u32,
     /// Tracks not triangulated otherwise: rays missing each other, behind a camera, no ray,
@@ -307,17 +335,54 @@ impl Keyframe {
     }
 }
 
-/// A triangulated track.
+/// A triangulated track, with the descriptor of its latest sighting in a keyframe.
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Landmark {
     track: u32,
     position: Vector3<f64>,
+    descriptor: Descriptor,
 }
 
 const NO_LANDMARK: Landmark = Landmark {
     track: NO_TRACK,
     position: Vector3::new(0.0, 0.0, 0.0),
+    descriptor: Descriptor([0; 8]),
 };
+
+/// Working space of the re-finding: the landmarks searched for (queries) and the frame's
+/// features that may continue one (train), as [`match_guided`] takes them.
+#[derive(Debug)]
+struct RefindScratch<const M: usize> {
+    query_track: [u32; M],
+    query_descriptor: [Descriptor; M],
+    query_px: [[f32; 2]; M],
+    train_feature: [u16; MAX_FEATURES],
+    train_descriptor: [Descriptor; MAX_FEATURES],
+    train_px: [[f32; 2]; MAX_FEATURES],
+    /// The frame's track ids, sorted.
+    tracked: [u32; MAX_FEATURES],
+    matches: [Match; MAX_FEATURES],
+}
+
+impl<const M: usize> RefindScratch<M> {
+    const fn new() -> Self {
+        const NO_MATCH: Match = Match {
+            query: 0,
+            train: 0,
+            distance: 0,
+        };
+        RefindScratch {
+            query_track: [NO_TRACK; M],
+            query_descriptor: [Descriptor([0; 8]); M],
+            query_px: [[0.0; 2]; M],
+            train_feature: [0; MAX_FEATURES],
+            train_descriptor: [Descriptor([0; 8]); MAX_FEATURES],
+            train_px: [[0.0; 2]; MAX_FEATURES],
+            tracked: [NO_TRACK; MAX_FEATURES],
+            matches: [NO_MATCH; MAX_FEATURES],
+        }
+    }
+}
 
 /// Where a window observation came from: keyframe slot and feature index.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -346,6 +411,7 @@ pub struct VisualOdometry<const N: usize, const M: usize, const K: usize> {
     last_stamp: Option<i64>,
     sources: [ObservationSource; K],
     window: BundleWindow<N, M, K>,
+    refind: RefindScratch<M>,
     stats: VoStats,
 }
 
@@ -381,6 +447,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                 feature: 0,
             }; K],
             window: BundleWindow::new(),
+            refind: RefindScratch::new(),
             stats: VoStats {
                 frames: 0,
                 keyframes: 0,
@@ -392,6 +459,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                 bad_matches: 0,
                 bad_pixels: 0,
                 landmarks: 0,
+                refound: 0,
                 low_parallax: 0,
                 triangulation_refused: 0,
                 capacity_dropped: 0,
@@ -573,6 +641,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         };
         let slot = self.keyframe_count;
         let n = frame.keypoints.len().min(MAX_FEATURES);
+        let refound = self.refind_landmarks(frame, &guess, model, mount, cfg);
         let Some(kf) = self.keyframes.get_mut(slot) else {
             // N == 0: no window at all.
             return KeyframeOutput {
@@ -582,6 +651,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                 pose: guess,
                 landmarks_seen: 0,
                 new_landmarks: 0,
+                refound,
                 outliers_dropped: 0,
                 landmarks_dropped: 0,
                 solve: Err(WindowError::Full),
@@ -604,6 +674,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         self.keyframe_count += 1;
         self.stats.keyframes += 1;
         let new_landmarks = self.triangulate_new(slot, model, mount, cfg);
+        self.remember_descriptors(frame);
         let (solve, outliers_dropped, landmarks_dropped) = self.solve(model, mount, cfg);
         let pose = self.keyframes.get(slot).map_or(guess, |k| k.pose);
         let relative = slot
@@ -623,6 +694,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
             pose,
             landmarks_seen,
             new_landmarks,
+            refound,
             outliers_dropped,
             landmarks_dropped,
             solve,
@@ -634,6 +706,134 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
             .get(..self.landmark_count)?
             .binary_search_by_key(&track, |l| l.track)
             .ok()
+    }
+
+    /// Searches the window's landmarks whose track no feature of `frame` continues near their
+    /// pixel predicted from `guess` (the keyframe's first pose), by descriptor. A feature so
+    /// matched takes the landmark's track id, in this frame and as the previous frame of the
+    /// next. Only features whose track is in no keyframe of the window (started since the
+    /// last keyframe) are candidates: an older track is not taken from its own sightings.
+    /// Returns the landmarks re-found.
+    fn refind_landmarks(
+        &mut self,
+        frame: &VoFrame<'_>,
+        guess: &Se2,
+        model: &CameraModel,
+        mount: &CameraExtrinsic,
+        cfg: &VoConfig,
+    ) -> usize {
+        // `refind_radius_px > 0` is false for NaN too.
+        if !(cfg.refind_radius_px > 0.0) || self.landmark_count == 0 {
+            return 0;
+        }
+        let n = frame
+            .keypoints
+            .len()
+            .min(frame.descriptors.len())
+            .min(MAX_FEATURES);
+        let s = &mut self.refind;
+        // The frame's tracks, sorted, to tell which landmarks it already continues.
+        let tracked = s.tracked.get_mut(..n).unwrap_or_default();
+        tracked.copy_from_slice(self.current.get(..n).unwrap_or_default());
+        crate::sort::sort_by_key(tracked, |&t| t);
+        let camera = CameraPose::of_robot(guess, mount);
+        let mut queries = 0;
+        for l in self.landmarks.iter().take(self.landmark_count) {
+            if tracked.binary_search(&l.track).is_ok() {
+                continue;
+            }
+            let Some(px) = model.project(&camera.world_to_camera(&l.position)) else {
+                continue;
+            };
+            let (Some(t), Some(d), Some(p)) = (
+                s.query_track.get_mut(queries),
+                s.query_descriptor.get_mut(queries),
+                s.query_px.get_mut(queries),
+            ) else {
+                break;
+            };
+            *t = l.track;
+            *d = l.descriptor;
+            // Off-image and non-finite predictions simply find no candidate.
+            *p = [px.x as f32, px.y as f32];
+            queries += 1;
+        }
+        let keyframes = self
+            .keyframes
+            .get(..self.keyframe_count)
+            .unwrap_or_default();
+        let mut candidates = 0;
+        for (i, ((&id, kp), d)) in self
+            .current
+            .iter()
+            .zip(frame.keypoints)
+            .zip(frame.descriptors)
+            .enumerate()
+            .take(n)
+        {
+            if id == NO_TRACK || keyframes.iter().any(|k| k.find(id).is_some()) {
+                continue;
+            }
+            let (Some(f), Some(td), Some(tp), Ok(index)) = (
+                s.train_feature.get_mut(candidates),
+                s.train_descriptor.get_mut(candidates),
+                s.train_px.get_mut(candidates),
+                u16::try_from(i),
+            ) else {
+                break;
+            };
+            *f = index;
+            *td = *d;
+            *tp = kp.position();
+            candidates += 1;
+        }
+        if queries == 0 || candidates == 0 {
+            return 0;
+        }
+        let stats = match_guided(
+            s.query_descriptor.get(..queries).unwrap_or_default(),
+            s.query_px.get(..queries).unwrap_or_default(),
+            s.train_descriptor.get(..candidates).unwrap_or_default(),
+            s.train_px.get(..candidates).unwrap_or_default(),
+            cfg.refind_radius_px,
+            &cfg.refind,
+            &mut s.matches,
+        );
+        let mut refound = 0;
+        for m in s.matches.iter().take(stats.matched) {
+            let (Some(&track), Some(&feature)) =
+                (s.query_track.get(m.query), s.train_feature.get(m.train))
+            else {
+                continue;
+            };
+            let feature = usize::from(feature);
+            if let (Some(c), Some(p)) = (
+                self.current.get_mut(feature),
+                self.previous.get_mut(feature),
+            ) {
+                *c = track;
+                *p = track;
+                refound += 1;
+            }
+        }
+        self.stats.refound += u32::try_from(refound).unwrap_or(u32::MAX);
+        refound
+    }
+
+    /// Gives each landmark the descriptor of its sighting in `frame` (the newest keyframe).
+    fn remember_descriptors(&mut self, frame: &VoFrame<'_>) {
+        let n = frame.keypoints.len().min(MAX_FEATURES);
+        let landmarks = self
+            .landmarks
+            .get_mut(..self.landmark_count)
+            .unwrap_or_default();
+        for (&id, d) in self.current.iter().zip(frame.descriptors).take(n) {
+            if let Ok(i) = landmarks.binary_search_by_key(&id, |l| l.track) {
+                if let Some(l) = landmarks.get_mut(i) {
+                    l.descriptor = *d;
+                }
+            }
+        }
     }
 
     /// Triangulates the tracks of keyframe `slot` that have no landmark yet from the oldest
@@ -691,6 +891,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                     *l = Landmark {
                         track: f.track,
                         position: point.position,
+                        descriptor: Descriptor([0; 8]),
                     };
                     count += 1;
                 }

@@ -193,6 +193,7 @@ fn run(seed: u64, wrong_match_share: f64) -> (Errors, Errors, Figures, VoStats) 
             odometry: odo,
             keypoints: &keypoints,
             matches: &matches,
+            descriptors: &[],
         };
         let step = vo.process(&frame, &model, &mount, &cfg).expect("accepted");
         if let Some(k) = step.keyframe {
@@ -297,6 +298,7 @@ fn bad_frames_are_refused_and_counted() {
         odometry: Se2::IDENTITY,
         keypoints: &points,
         matches: &[],
+        descriptors: &[],
     };
     let first = vo.process(&frame, &model, &mount, &cfg).expect("first");
     assert_eq!(
@@ -411,7 +413,7 @@ proptest::proptest! {
                 .map(|&(query, train)| Match { query, train, distance: 0 })
                 .collect();
             let odometry = Se2::new(if *nan { f64::NAN } else { *x }, *y, *t);
-            let frame = VoFrame { stamp, odometry, keypoints: &keypoints, matches: &matches };
+            let frame = VoFrame { stamp, odometry, keypoints: &keypoints, matches: &matches, descriptors: &[] };
             if let Ok(step) = vo.process(&frame, &model, &mount, &cfg) {
                 proptest::prop_assert!(step.tracked <= keypoints.len());
             }
@@ -426,16 +428,21 @@ proptest::proptest! {
 }
 
 /// What the odometry costs besides its window: per keyframe slot, [`MAX_FEATURES`] features
-/// of 16 bytes and two poses; per landmark a track id and a point; per observation slot the
-/// keyframe and feature it came from; and two frames of track ids.
+/// of 16 bytes and two poses; per landmark a track id, a point and a descriptor; per
+/// observation slot the keyframe and feature it came from; two frames of track ids; and the
+/// re-finding's working space (per landmark a track id, a descriptor and a pixel, per feature
+/// an index, a descriptor, a pixel, a track id and a match).
 #[test]
 fn sizes() {
     type Small = VisualOdometry<3, 16, 64>;
     let window = size_of::<BundleWindow<3, 16, 64>>();
     assert_eq!(size_of::<KeyFeature>(), 16);
-    assert_eq!(size_of::<Landmark>(), 32);
+    assert_eq!(size_of::<Landmark>(), 64);
     assert_eq!(size_of::<ObservationSource>(), 4);
-    let own = 3 * size_of::<Keyframe>() + 16 * 32 + 64 * 4 + 2 * MAX_FEATURES * 4;
+    let match_size = size_of::<Match>();
+    let refind = 16 * (4 + 32 + 8) + MAX_FEATURES * (2 + 32 + 8 + 4 + match_size);
+    assert_eq!(size_of::<RefindScratch<16>>(), refind);
+    let own = 3 * size_of::<Keyframe>() + 16 * 64 + 64 * 4 + 2 * MAX_FEATURES * 4 + refind;
     assert!(size_of::<Small>() >= window + own);
     assert!(size_of::<Small>() <= window + own + 128);
 }
@@ -457,6 +464,7 @@ fn an_empty_window_takes_frames() {
             odometry: Se2::new(x, 0.0, 0.0),
             keypoints: &points,
             matches: &same,
+            descriptors: &[],
         };
         let step = vo.process(&frame, &model, &mount, &VoConfig::default());
         let k = step.expect("accepted").keyframe.expect("a keyframe");
@@ -490,6 +498,7 @@ fn a_frame_that_sees_what_the_keyframe_saw_is_redundant() {
             odometry: Se2::new(0.1 * i as f64, 0.0, 0.0),
             keypoints: &still,
             matches: &same,
+            descriptors: &[],
         };
         let step = vo.process(&frame, &model, &mount, &cfg).expect("accepted");
         keyframes += usize::from(step.keyframe.is_some());
@@ -504,10 +513,103 @@ fn a_frame_that_sees_what_the_keyframe_saw_is_redundant() {
         odometry: Se2::new(1.0, 0.0, 0.0),
         keypoints: &moved,
         matches: &same,
+        descriptors: &[],
     };
     let step = vo.process(&frame, &model, &mount, &cfg).expect("accepted");
     assert_eq!(
         step.keyframe.map(|k| k.reason),
         Some(KeyframeReason::Motion)
     );
+}
+
+/// Landmarks seen per keyframe and the counters, on a straight 2 m drive under random
+/// ceiling points each missed in a third of the frames (so frame-to-frame tracks break
+/// often), every point with its own random descriptor.
+fn run_with_misses(cfg: &VoConfig) -> (usize, usize, VoStats) {
+    let (model, mount) = cleaner_camera();
+    let mut rng = Rng::new(7);
+    let points: Vec<(Vector3<f64>, Descriptor)> = (0..600)
+        .map(|_| {
+            let p = Vector3::new(
+                uniform(&mut rng, -2.0, 5.0),
+                uniform(&mut rng, -3.0, 3.0),
+                2.4,
+            );
+            let mut d = [0u32; 8];
+            d.iter_mut().for_each(|w| *w = rng.next_u64() as u32);
+            (p, Descriptor(d))
+        })
+        .collect();
+    let mut vo = Box::new(Vo::new());
+    let mut previous: Vec<usize> = Vec::new();
+    let (mut keyframes, mut landmarks_seen) = (0, 0);
+    let mut pose = Se2::IDENTITY;
+    for i in 0..70 {
+        if i > 0 {
+            pose = pose.compose(&Se2::new(0.03, 0.0, 0.0));
+        }
+        let cam = CameraPose::of_robot(&pose, &mount);
+        let (mut keypoints, mut descriptors, mut seen) = (Vec::new(), Vec::new(), Vec::new());
+        for (p, (point, d)) in points.iter().enumerate() {
+            let pc = cam.world_to_camera(point);
+            let Some(px) = model.project(&pc) else {
+                continue;
+            };
+            let inside =
+                pc.z > 0.1 && (0.0..WIDTH).contains(&px.x) && (0.0..HEIGHT).contains(&px.y);
+            if !inside || uniform(&mut rng, 0.0, 1.0) < 0.33 || keypoints.len() == MAX_FEATURES {
+                continue;
+            }
+            keypoints.push(kp(px.x as f32, px.y as f32));
+            descriptors.push(*d);
+            seen.push(p);
+        }
+        let matches: Vec<Match> = previous
+            .iter()
+            .enumerate()
+            .filter_map(|(q, p)| {
+                let t = seen.iter().position(|s| s == p)?;
+                Some(Match {
+                    query: q,
+                    train: t,
+                    distance: 0,
+                })
+            })
+            .collect();
+        previous = seen;
+        let frame = VoFrame {
+            stamp: 100_000_000 * i as i64,
+            odometry: pose,
+            keypoints: &keypoints,
+            matches: &matches,
+            descriptors: &descriptors,
+        };
+        let step = vo.process(&frame, &model, &mount, cfg).expect("accepted");
+        if let Some(k) = step.keyframe {
+            keyframes += 1;
+            landmarks_seen += k.landmarks_seen;
+        }
+    }
+    (keyframes, landmarks_seen, vo.stats())
+}
+
+/// A feature missed in one frame ends its frame-to-frame track; re-finding the landmark near
+/// its predicted pixel by descriptor continues it, so keyframes see more landmarks, and no
+/// re-found sighting is an outlier (every descriptor is unique, the prediction exact).
+#[test]
+fn landmarks_missed_in_a_frame_are_found_again() {
+    let off = VoConfig {
+        refind_radius_px: 0.0,
+        ..VoConfig::default()
+    };
+    let (kf_off, seen_off, stats_off) = with_stack(move || run_with_misses(&off));
+    let (kf_on, seen_on, stats_on) = with_stack(|| run_with_misses(&VoConfig::default()));
+    std::println!(
+        "without re-finding: {kf_off} keyframes, {seen_off} landmarks seen, {stats_off:?}"
+    );
+    std::println!("with re-finding: {kf_on} keyframes, {seen_on} landmarks seen, {stats_on:?}");
+    assert_eq!(stats_off.refound, 0);
+    assert!(stats_on.refound > 0);
+    assert!(seen_on > seen_off + seen_off / 2, "{seen_on} vs {seen_off}");
+    assert_eq!(stats_on.outliers_dropped, 0);
 }
