@@ -59,7 +59,9 @@
 //! frame is refused and counted;
 //! its features still become the previous frame of the next one (the camera's track moved on),
 //! and without matches every feature starts a new track. Matches naming features that do not
-//! exist, and features whose pixel is not finite, are skipped and counted.
+//! exist, and features whose pixel is not finite, are skipped and counted. Features beyond the
+//! frame's descriptors are not candidates for re-finding, and keep their landmark's descriptor
+//! as it was.
 //!
 //! Nothing here allocates or recurses: features and landmarks are kept sorted by track id with
 //! [`crate::sort`], and looked up by binary search.
@@ -394,8 +396,9 @@ struct ObservationSource {
 /// Visual odometry of one camera: at most `N` keyframes in the window, `M` landmarks and `K`
 /// observations.
 ///
-/// The value is large (the window's storage plus `N` keyframes of [`MAX_FEATURES`]
-/// features): build it where it will live, not as a local on a small stack.
+/// The value is large (the window's storage, `N` keyframes of [`MAX_FEATURES`] features, and
+/// the re-finding's working space for `M` landmarks and [`MAX_FEATURES`] features): build it
+/// where it will live, not as a local on a small stack.
 #[derive(Debug)]
 pub struct VisualOdometry<const N: usize, const M: usize, const K: usize> {
     keyframes: [Keyframe; N],
@@ -722,8 +725,8 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         mount: &CameraExtrinsic,
         cfg: &VoConfig,
     ) -> usize {
-        // `refind_radius_px > 0` is false for NaN too.
-        if !(cfg.refind_radius_px > 0.0) || self.landmark_count == 0 {
+        let radius = cfg.refind_radius_px;
+        if radius.is_nan() || radius <= 0.0 || self.landmark_count == 0 {
             return 0;
         }
         let n = frame
