@@ -45,7 +45,8 @@ pub use frame::{FrameError, FrameFeatures};
 pub use image::{smooth_into, smoothed_bytes, GrayImage};
 pub use matching::{match_brute_force, match_guided, Match, MatchConfig, MatchStats};
 pub use odometry::{
-    KeyframeOutput, KeyframeReason, VisualOdometry, VoConfig, VoError, VoFrame, VoStats, VoStep,
+    KeyframeOutput, KeyframeReason, LowFeatureConfig, VisualOdometry, VoConfig, VoError, VoFrame,
+    VoStats, VoStep,
 };
 pub use pyramid::{pyramid_bytes, Pyramid, PyramidError};
 pub use track::{CameraTrack, TrackConfig, TrackError, TrackScratch, TrackStats, TrackStep};

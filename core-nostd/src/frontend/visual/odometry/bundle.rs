@@ -53,6 +53,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
             if let (true, Some(f)) = (outlier, feature) {
                 f.track = NO_TRACK;
                 dropped += 1;
+                self.stats.backfilled_outliers += u32::from(f.backfilled);
             }
         }
         if dropped > 0 {

@@ -35,6 +35,9 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         let camera = CameraPose::of_robot(guess, mount);
         let mut queries = 0;
         for l in self.landmarks.iter().take(self.landmark_count) {
+            let Some(descriptor) = l.descriptor else {
+                continue;
+            };
             if tracked.binary_search(&l.track).is_ok() {
                 continue;
             }
@@ -49,7 +52,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                 break;
             };
             *t = l.track;
-            *d = l.descriptor;
+            *d = descriptor;
             // Off-image and non-finite predictions simply find no candidate.
             *p = [px.x as f32, px.y as f32];
             queries += 1;
@@ -126,7 +129,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         for (&id, d) in self.current.iter().zip(frame.descriptors).take(n) {
             if let Ok(i) = landmarks.binary_search_by_key(&id, |l| l.track) {
                 if let Some(l) = landmarks.get_mut(i) {
-                    l.descriptor = *d;
+                    l.descriptor = Some(*d);
                 }
             }
         }
@@ -187,7 +190,7 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                     *l = Landmark {
                         track: f.track,
                         position: point.position,
-                        descriptor: Descriptor([0; 8]),
+                        descriptor: None,
                     };
                     count += 1;
                 }

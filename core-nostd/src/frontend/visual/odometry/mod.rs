@@ -40,13 +40,18 @@
 //! 3. Each of its tracks without a landmark is triangulated from the oldest keyframe of the
 //!    window that saw it (the widest baseline) and this one; pairs with too little parallax
 //!    or rays that miss each other are left for a later keyframe.
-//! 4. The window is filled with the keyframes (oldest first), their landmarks, every sighting
+//! 4. The low-feature measures of the paper (see `lowfeature`): landmarks that are one point
+//!    triangulated twice are merged, and the window's landmarks are searched for in the older
+//!    keyframes that do not see them yet, by projection and descriptor.
+//! 5. The window is filled with the keyframes (oldest first), their landmarks, every sighting
 //!    of a landmark in a keyframe, and the wheel+gyro motion priors between consecutive
 //!    keyframes (information from [`VoConfig`]'s noise model), then solved.
-//! 5. Observations the solve flags as outliers are dropped from their keyframe, and landmarks
+//! 6. Observations the solve flags as outliers are dropped from their keyframe, and landmarks
 //!    with more outlying than inlying sightings are dropped: a wrong match or a moving object.
-//! 6. When the window is full, the oldest keyframe leaves it before the next one enters, with
-//!    the landmarks no remaining keyframe sees. The oldest keyframe left is held fixed at its
+//! 7. When the window is full, the oldest keyframe leaves it before the next one enters, with
+//!    the landmarks no remaining keyframe sees; just before, the landmarks it sees that are
+//!    seen in fewer than [`LowFeatureConfig::min_sightings`] keyframes are dropped (the third
+//!    low-feature measure). The oldest keyframe left is held fixed at its
 //!    last solved pose (the gauge); nothing of the dropped keyframe is marginalised into a
 //!    prior yet, so the information it carried about the others is lost.
 //!
@@ -67,7 +72,8 @@
 //! [`crate::sort`], and looked up by binary search.
 //!
 //! Files: `types` (configuration, input frame, errors, outputs), `landmarks` (re-finding and
-//! triangulating landmarks), `bundle` (filling, solving and sliding the window).
+//! triangulating landmarks), `lowfeature` (the paper's three measures for few features),
+//! `bundle` (filling, solving and sliding the window).
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 
@@ -87,6 +93,7 @@ use crate::geom::Se2;
 
 mod bundle;
 mod landmarks;
+mod lowfeature;
 #[cfg(test)]
 mod tests;
 mod types;
@@ -103,12 +110,19 @@ struct KeyFeature {
     track: u32,
     px: [f32; 2],
     level: u8,
+    /// Whether low-feature measure (a) added the sighting after the keyframe was made: counted
+    /// when the solve refuses it, to judge the measure.
+    backfilled: bool,
+    /// What a landmark is matched against when it is searched for in an older keyframe.
+    descriptor: Option<Descriptor>,
 }
 
 const NO_FEATURE: KeyFeature = KeyFeature {
     track: NO_TRACK,
     px: [0.0; 2],
     level: 0,
+    backfilled: false,
+    descriptor: None,
 };
 
 /// A keyframe in the window; its features sorted by track id.
@@ -146,18 +160,19 @@ impl Keyframe {
     }
 }
 
-/// A triangulated track, with the descriptor of its latest sighting in a keyframe.
+/// A triangulated track, with the descriptor of its latest sighting in a keyframe (none
+/// while no keyframe that saw it came with descriptors).
 #[derive(Clone, Copy, Debug, PartialEq)]
 struct Landmark {
     track: u32,
     position: Vector3<f64>,
-    descriptor: Descriptor,
+    descriptor: Option<Descriptor>,
 }
 
 const NO_LANDMARK: Landmark = Landmark {
     track: NO_TRACK,
     position: Vector3::new(0.0, 0.0, 0.0),
-    descriptor: Descriptor([0; 8]),
+    descriptor: None,
 };
 
 /// Working space of the re-finding: the landmarks searched for (queries) and the frame's
@@ -277,6 +292,10 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                 capacity_dropped: 0,
                 outliers_dropped: 0,
                 landmarks_dropped: 0,
+                backfilled: 0,
+                merged: 0,
+                short_lived_dropped: 0,
+                backfilled_outliers: 0,
                 solve_failures: 0,
             },
         }
@@ -442,7 +461,9 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         mount: &CameraExtrinsic,
         cfg: &VoConfig,
     ) -> KeyframeOutput {
+        let mut short_lived_dropped = 0;
         if self.keyframe_count == N {
+            short_lived_dropped = self.drop_short_lived(cfg);
             self.slide();
         }
         let guess = match self.keyframe_count.checked_sub(1) {
@@ -466,18 +487,28 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                 refound,
                 outliers_dropped: 0,
                 landmarks_dropped: 0,
+                backfilled: 0,
+                merged: 0,
+                short_lived_dropped,
                 solve: Err(WindowError::Full),
             };
         };
         kf.odometry = frame.odometry;
         kf.pose = guess;
         kf.len = 0;
-        for (&id, kp) in self.current.iter().zip(frame.keypoints.iter().take(n)) {
+        for (i, (&id, kp)) in self
+            .current
+            .iter()
+            .zip(frame.keypoints.iter().take(n))
+            .enumerate()
+        {
             if let (true, Some(f)) = (id != NO_TRACK, kf.features.get_mut(kf.len)) {
                 *f = KeyFeature {
                     track: id,
                     px: kp.position(),
                     level: kp.level,
+                    backfilled: false,
+                    descriptor: frame.descriptors.get(i).copied(),
                 };
                 kf.len += 1;
             }
@@ -487,6 +518,8 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         self.stats.keyframes += 1;
         let new_landmarks = self.triangulate_new(slot, model, mount, cfg);
         self.remember_descriptors(frame);
+        let merged = self.merge_duplicates(cfg);
+        let backfilled = self.backfill(model, mount, cfg);
         let (solve, outliers_dropped, landmarks_dropped) = self.solve(model, mount, cfg);
         let pose = self.keyframes.get(slot).map_or(guess, |k| k.pose);
         let relative = slot
@@ -509,6 +542,9 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
             refound,
             outliers_dropped,
             landmarks_dropped,
+            backfilled,
+            merged,
+            short_lived_dropped,
             solve,
         }
     }

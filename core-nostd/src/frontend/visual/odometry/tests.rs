@@ -428,7 +428,7 @@ proptest::proptest! {
 }
 
 /// What the odometry costs besides its window: per keyframe slot, [`MAX_FEATURES`] features
-/// of 16 bytes and two poses; per landmark a track id, a point and a descriptor; per
+/// of 52 bytes (track, pixel, level, measure (a)'s flag and descriptor) and two poses; per landmark a track id, a point and a descriptor; per
 /// observation slot the keyframe and feature it came from; two frames of track ids; and the
 /// re-finding's working space (per landmark a track id, a descriptor and a pixel, per feature
 /// an index, a descriptor, a pixel, a track id and a match).
@@ -436,7 +436,7 @@ proptest::proptest! {
 fn sizes() {
     type Small = VisualOdometry<3, 16, 64>;
     let window = size_of::<BundleWindow<3, 16, 64>>();
-    assert_eq!(size_of::<KeyFeature>(), 16);
+    assert_eq!(size_of::<KeyFeature>(), 52);
     assert_eq!(size_of::<Landmark>(), 64);
     assert_eq!(size_of::<ObservationSource>(), 4);
     let match_size = size_of::<Match>();
@@ -612,4 +612,294 @@ fn landmarks_missed_in_a_frame_are_found_again() {
     assert!(stats_on.refound > 0);
     assert!(seen_on > seen_off + seen_off / 2, "{seen_on} vs {seen_off}");
     assert_eq!(stats_on.outliers_dropped, 0);
+}
+
+// The low-feature measures, on a window set up by hand: keyframes with their features, and
+// landmarks, as the odometry would have left them.
+
+fn descriptor(rng: &mut Rng) -> Descriptor {
+    let mut d = [0u32; 8];
+    d.iter_mut().for_each(|w| *w = rng.next_u64() as u32);
+    Descriptor(d)
+}
+
+/// `d` with its lowest `bits` bits (at most 32) flipped: the same corner seen again.
+fn flipped(d: Descriptor, bits: u32) -> Descriptor {
+    let mut out = d;
+    out.0[0] ^= u32::MAX >> (32 - bits);
+    out
+}
+
+fn feature(track: u32, px: [f32; 2], descriptor: Option<Descriptor>) -> KeyFeature {
+    KeyFeature {
+        track,
+        px,
+        level: 0,
+        backfilled: false,
+        descriptor,
+    }
+}
+
+/// Appends a keyframe at `pose` with `features` (sorted here).
+fn put_keyframe<const N: usize, const M: usize, const K: usize>(
+    vo: &mut VisualOdometry<N, M, K>,
+    pose: Se2,
+    features: &[KeyFeature],
+) {
+    let kf = &mut vo.keyframes[vo.keyframe_count];
+    kf.pose = pose;
+    kf.odometry = pose;
+    kf.features[..features.len()].copy_from_slice(features);
+    kf.len = features.len();
+    kf.compact();
+    vo.keyframe_count += 1;
+}
+
+fn put_landmarks<const N: usize, const M: usize, const K: usize>(
+    vo: &mut VisualOdometry<N, M, K>,
+    landmarks: &[(u32, Vector3<f64>, Descriptor)],
+) {
+    for (slot, &(track, position, d)) in vo.landmarks.iter_mut().zip(landmarks) {
+        *slot = Landmark {
+            track,
+            position,
+            descriptor: Some(d),
+        };
+    }
+    vo.landmark_count = landmarks.len();
+    crate::sort::sort_by_key(&mut vo.landmarks[..landmarks.len()], |l| l.track);
+}
+
+fn landmark<const N: usize, const M: usize, const K: usize>(
+    vo: &VisualOdometry<N, M, K>,
+    track: u32,
+) -> Option<Landmark> {
+    vo.landmarks[..vo.landmark_count]
+        .iter()
+        .find(|l| l.track == track)
+        .copied()
+}
+
+/// Measure (b): the same corner triangulated twice, from two keyframes that each saw one of
+/// its tracks, becomes one landmark at the mean of the two, with both sightings; a close
+/// point with another descriptor, a far point with the same one, and two points seen side by
+/// side in one image stay apart.
+#[test]
+fn duplicate_landmarks_become_one_at_their_mean() {
+    let mut rng = Rng::new(3);
+    let (corner, other, lamp) = (
+        descriptor(&mut rng),
+        descriptor(&mut rng),
+        descriptor(&mut rng),
+    );
+    let mut vo = Box::new(VisualOdometry::<4, 16, 64>::new());
+    let f = |t| feature(t, [100.0, 100.0], None);
+    put_keyframe(&mut vo, Se2::IDENTITY, &[f(1), f(3), f(5)]);
+    put_keyframe(
+        &mut vo,
+        Se2::new(0.25, 0.0, 0.0),
+        &[f(2), f(3), f(4), f(5), f(6)],
+    );
+    put_landmarks(
+        &mut vo,
+        &[
+            (1, Vector3::new(1.00, 0.00, 2.4), corner),
+            (2, Vector3::new(1.04, 0.02, 2.4), flipped(corner, 6)),
+            (3, Vector3::new(1.03, 0.00, 2.4), other),
+            (4, Vector3::new(1.50, 0.00, 2.4), corner),
+            (5, Vector3::new(3.00, 0.00, 2.4), lamp),
+            (6, Vector3::new(3.01, 0.00, 2.4), lamp),
+        ],
+    );
+    // Track 2 is still followed in the newest frame.
+    vo.current[0] = 2;
+    vo.previous[0] = 2;
+    vo.previous_len = 1;
+    let merged = vo.merge_duplicates(&VoConfig::default());
+    assert_eq!(merged, 1);
+    assert_eq!(vo.stats().merged, 1);
+    assert_eq!(vo.landmark_count(), 5);
+    assert!(landmark(&vo, 2).is_none());
+    let kept = landmark(&vo, 1).expect("the first track kept");
+    assert!((kept.position - Vector3::new(1.02, 0.01, 2.4)).norm() < 1e-12);
+    // Both keyframes now see the one landmark, and the live track continues it.
+    assert!(vo.keyframes[0].find(1).is_some());
+    assert!(vo.keyframes[1].find(1).is_some());
+    assert!(vo.keyframes[1].find(2).is_none());
+    assert_eq!(vo.sightings(1), 2);
+    assert_eq!((vo.current[0], vo.previous[0]), (1, 1));
+    for t in [3, 4, 5, 6] {
+        assert!(landmark(&vo, t).is_some(), "landmark {t}");
+    }
+    // Off, nothing merges.
+    let off = VoConfig {
+        low_feature: LowFeatureConfig {
+            merge_distance: 0.0,
+            ..LowFeatureConfig::default()
+        },
+        ..VoConfig::default()
+    };
+    assert_eq!(vo.merge_duplicates(&off), 0);
+}
+
+/// Measure (b): the landmark seen more often stays, and the mean leans towards it.
+#[test]
+fn a_merge_keeps_the_better_seen_landmark() {
+    let mut rng = Rng::new(4);
+    let corner = descriptor(&mut rng);
+    let mut vo = Box::new(VisualOdometry::<4, 16, 64>::new());
+    let f = |t| feature(t, [100.0, 100.0], None);
+    put_keyframe(&mut vo, Se2::IDENTITY, &[f(7)]);
+    put_keyframe(&mut vo, Se2::new(0.25, 0.0, 0.0), &[f(7)]);
+    put_keyframe(&mut vo, Se2::new(0.5, 0.0, 0.0), &[f(8)]);
+    put_landmarks(
+        &mut vo,
+        &[
+            (7, Vector3::new(1.0, 0.0, 2.4), corner),
+            (8, Vector3::new(1.0, 0.06, 2.4), corner),
+        ],
+    );
+    assert_eq!(vo.merge_duplicates(&VoConfig::default()), 1);
+    let kept = landmark(&vo, 7).expect("the better seen kept");
+    assert!((kept.position - Vector3::new(1.0, 0.02, 2.4)).norm() < 1e-12);
+    assert_eq!(vo.sightings(7), 3);
+}
+
+/// Measure (c): when the oldest keyframe is about to leave, the landmarks it sees that fewer
+/// than four keyframes saw leave with their sightings; those seen often enough, and those
+/// the oldest keyframe does not see (they may still be seen again), stay.
+#[test]
+fn short_lived_landmarks_are_dropped() {
+    let mut vo = Box::new(VisualOdometry::<5, 16, 64>::new());
+    let f = |t| feature(t, [100.0, 100.0], None);
+    put_keyframe(&mut vo, Se2::IDENTITY, &[f(1), f(2)]);
+    put_keyframe(&mut vo, Se2::new(0.25, 0.0, 0.0), &[f(1), f(2), f(3)]);
+    put_keyframe(&mut vo, Se2::new(0.5, 0.0, 0.0), &[f(2), f(3)]);
+    put_keyframe(&mut vo, Se2::new(0.75, 0.0, 0.0), &[f(2)]);
+    put_keyframe(&mut vo, Se2::new(1.0, 0.0, 0.0), &[f(4)]);
+    let d = Descriptor([0; 8]);
+    let p = Vector3::new(1.0, 0.0, 2.4);
+    put_landmarks(&mut vo, &[(1, p, d), (2, p, d), (3, p, d), (4, p, d)]);
+    let off = VoConfig {
+        low_feature: LowFeatureConfig {
+            min_sightings: 0,
+            ..LowFeatureConfig::default()
+        },
+        ..VoConfig::default()
+    };
+    assert_eq!(vo.drop_short_lived(&off), 0);
+    assert_eq!(vo.landmark_count(), 4);
+
+    assert_eq!(vo.drop_short_lived(&VoConfig::default()), 1);
+    assert_eq!(vo.stats().short_lived_dropped, 1);
+    assert!(landmark(&vo, 1).is_none());
+    assert!(vo.keyframes[..5].iter().all(|k| k.find(1).is_none()));
+    assert_eq!(vo.keyframes[1].len, 2);
+    for t in [2, 3, 4] {
+        assert!(landmark(&vo, t).is_some(), "landmark {t}");
+    }
+    // The window then slides as before: the survivors are still seen.
+    vo.slide();
+    assert_eq!(vo.landmark_count(), 3);
+}
+
+/// Measure (a): a landmark triangulated in the two newest keyframes is found in the oldest,
+/// whose feature of the same corner had started a track that ended there; a look-alike
+/// feature farther than the radius, a close feature of another corner, and a feature whose
+/// track is still followed are not taken. The window then has one more observation.
+#[test]
+fn an_older_keyframe_gains_the_sightings_of_a_later_landmark() {
+    let (model, mount) = cleaner_camera();
+    let mut rng = Rng::new(5);
+    let (corner, other, lamp) = (
+        descriptor(&mut rng),
+        descriptor(&mut rng),
+        descriptor(&mut rng),
+    );
+    let poses = [
+        Se2::IDENTITY,
+        Se2::new(0.25, 0.0, 0.05),
+        Se2::new(0.5, 0.0, 0.1),
+    ];
+    let (p, q) = (Vector3::new(1.2, 0.3, 2.4), Vector3::new(1.0, -0.4, 2.4));
+    let px = |pose: &Se2, point: &Vector3<f64>| {
+        let c = CameraPose::of_robot(pose, &mount);
+        let px = model.project(&c.world_to_camera(point)).expect("in view");
+        [px.x as f32, px.y as f32]
+    };
+    let p0 = px(&poses[0], &p);
+    let q0 = px(&poses[0], &q);
+    let mut vo = Box::new(VisualOdometry::<4, 16, 64>::new());
+    put_keyframe(
+        &mut vo,
+        poses[0],
+        &[
+            // The corner, under an ended track (10), and a look-alike 20 px away.
+            feature(10, [p0[0] + 0.4, p0[1] - 0.3], Some(flipped(corner, 5))),
+            feature(11, [p0[0] + 20.0, p0[1]], Some(corner)),
+            feature(12, [p0[0] - 2.0, p0[1] + 1.0], Some(other)),
+            // The lamp under track 40, still followed in the newest keyframe.
+            feature(40, q0, Some(lamp)),
+        ],
+    );
+    for pose in &poses[1..] {
+        put_keyframe(
+            &mut vo,
+            *pose,
+            &[
+                feature(20, px(pose, &p), Some(corner)),
+                feature(30, px(pose, &q), Some(lamp)),
+                feature(40, [5.0, 5.0], Some(other)),
+            ],
+        );
+    }
+    put_landmarks(&mut vo, &[(20, p, corner), (30, q, lamp)]);
+    let cfg = VoConfig::default();
+    vo.fill(&cfg).expect("room");
+    assert_eq!(vo.window.observation_count(), 4);
+
+    assert_eq!(vo.backfill(&model, &mount, &cfg), 1);
+    assert_eq!(vo.stats().backfilled, 1);
+    let oldest = &vo.keyframes[0];
+    let (_, found) = oldest
+        .find(20)
+        .expect("the corner found in the oldest keyframe");
+    assert_eq!(found.px, [p0[0] + 0.4, p0[1] - 0.3]);
+    assert!(oldest.find(10).is_none());
+    assert!(oldest.find(11).is_some() && oldest.find(12).is_some());
+    assert!(oldest.find(30).is_none() && oldest.find(40).is_some());
+    assert_eq!(vo.sightings(20), 3);
+    vo.fill(&cfg).expect("room");
+    assert_eq!(vo.window.observation_count(), 5);
+    // Found already: a second pass adds nothing.
+    assert_eq!(vo.backfill(&model, &mount, &cfg), 0);
+}
+
+/// The three measures on the drive with missed features: sightings are found in older
+/// keyframes, and none of them is an outlier (each descriptor is unique, the poses exact).
+#[test]
+fn the_low_feature_measures_on_a_drive_with_misses() {
+    let off = VoConfig {
+        low_feature: LowFeatureConfig {
+            backfill_radius_px: 0.0,
+            merge_distance: 0.0,
+            min_sightings: 0,
+            ..LowFeatureConfig::default()
+        },
+        ..VoConfig::default()
+    };
+    let (kf_off, seen_off, stats_off) = with_stack(move || run_with_misses(&off));
+    let (kf_on, seen_on, stats_on) = with_stack(|| run_with_misses(&VoConfig::default()));
+    std::println!("measures off: {kf_off} keyframes, {seen_off} landmarks seen, {stats_off:?}");
+    std::println!("measures on: {kf_on} keyframes, {seen_on} landmarks seen, {stats_on:?}");
+    assert_eq!(
+        (
+            stats_off.backfilled,
+            stats_off.merged,
+            stats_off.short_lived_dropped
+        ),
+        (0, 0, 0)
+    );
+    assert!(stats_on.backfilled > 0, "{stats_on:?}");
+    assert_eq!(stats_on.outliers_dropped, 0, "{stats_on:?}");
 }

@@ -38,6 +38,51 @@ pub struct VoConfig {
     pub refind_radius_px: f32,
     /// Acceptance of a re-found landmark (distance and ratio tests of the guided matcher).
     pub refind: MatchConfig,
+    /// The measures for scenes with few features.
+    pub low_feature: LowFeatureConfig,
+}
+
+/// The paper's three measures for scenes with few features (section III-B.1), each turned
+/// off by its own zero; see the `lowfeature` file of the odometry for what each does.
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LowFeatureConfig {
+    /// (a) Radius, level-0 pixels, around a window landmark's pixel predicted in an older
+    /// keyframe of the window that does not see it, within which that keyframe's features
+    /// whose track ended without a landmark are matched to it by descriptor (0: off).
+    pub backfill_radius_px: f32,
+    /// (a) Acceptance of such a sighting (distance and ratio tests of the guided matcher).
+    pub backfill: MatchConfig,
+    /// (b) Two landmarks closer than this, metres, with matching descriptors and never seen
+    /// in the same keyframe, are merged into one (0: off).
+    pub merge_distance: f64,
+    /// (b) Largest Hamming distance between the descriptors of two landmarks merged.
+    pub merge_max_hamming: u32,
+    /// (c) A landmark seen in fewer keyframes than this when the oldest keyframe that saw it
+    /// leaves the window is dropped from the window (below 2: off).
+    pub min_sightings: usize,
+}
+
+impl Default for LowFeatureConfig {
+    fn default() -> Self {
+        LowFeatureConfig {
+            // Tighter than the re-finding's: an older keyframe's pose is solved, so the
+            // prediction is better than a new keyframe's wheel+gyro guess, and each extra pixel
+            // lets in more look-alike ceiling corners (the solve refused a fifth of the
+            // sightings found within 8 px in the simulated home). Measured in
+            // docs/benchmarks.md: 4 to 8 px all help, 3 px loses true sightings.
+            backfill_radius_px: 5.0,
+            backfill: MatchConfig::default(),
+            // Close enough that two neighbouring ceiling corners with similar descriptors stay
+            // apart; a new landmark's two-view depth can be off by more, so some duplicates
+            // wait for a solve to bring them together. 0.25 m merged two or three more a run in
+            // the simulated home and did not help (docs/benchmarks.md).
+            merge_distance: 0.1,
+            merge_max_hamming: 64,
+            // The paper's figure for indoor scenes.
+            min_sightings: 4,
+        }
+    }
 }
 
 impl Default for VoConfig {
@@ -62,6 +107,7 @@ impl Default for VoConfig {
             // degrees) moves a ceiling point by a few pixels at most on the 320 x 240 fisheye.
             refind_radius_px: 8.0,
             refind: MatchConfig::default(),
+            low_feature: LowFeatureConfig::default(),
         }
     }
 }
@@ -146,6 +192,14 @@ pub struct KeyframeOutput {
     pub outliers_dropped: usize,
     /// Landmarks dropped because most of their sightings were outliers.
     pub landmarks_dropped: usize,
+    /// Sightings of the window's landmarks found in older keyframes of the window (low-feature
+    /// measure a).
+    pub backfilled: usize,
+    /// Landmarks merged into another one (low-feature measure b).
+    pub merged: usize,
+    /// Landmarks dropped, before this keyframe entered, for too few sightings (low-feature
+    /// measure c).
+    pub short_lived_dropped: usize,
     /// The solve, or why the window could not be solved (the poses then stay at their
     /// wheel+gyro guesses); [`WindowError::NoMeasurements`] for the first keyframe, which is
     /// not solved.
@@ -198,6 +252,14 @@ pub struct VoStats {
     pub outliers_dropped: u32,
     /// Landmarks dropped for their outliers.
     pub landmarks_dropped: u32,
+    /// Sightings of landmarks found in older keyframes of the window.
+    pub backfilled: u32,
+    /// Landmarks merged into a duplicate.
+    pub merged: u32,
+    /// Landmarks dropped for being seen in too few keyframes.
+    pub short_lived_dropped: u32,
+    /// Of the outlying observations, those found in an older keyframe.
+    pub backfilled_outliers: u32,
     /// Window solves that failed (the poses then keep their wheel+gyro guesses); the first
     /// keyframe's, which has nothing to solve, is not counted.
     pub solve_failures: u32,
