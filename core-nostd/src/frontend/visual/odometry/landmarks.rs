@@ -3,6 +3,45 @@
 
 use super::*;
 
+/// Writes the `landmarks` that `skip` does not exclude and that have a descriptor, with their
+/// pixels predicted in `camera`, as the queries of a guided match (track, descriptor, pixel);
+/// returns how many were written (at most the queries' room).
+pub(super) fn landmark_queries(
+    track: &mut [u32],
+    descriptor: &mut [Descriptor],
+    pixel: &mut [[f32; 2]],
+    landmarks: &[Landmark],
+    camera: &CameraPose,
+    model: &CameraModel,
+    skip: impl Fn(u32) -> bool,
+) -> usize {
+    let mut queries = 0;
+    for l in landmarks {
+        let Some(desc) = l.descriptor else {
+            continue;
+        };
+        if skip(l.track) {
+            continue;
+        }
+        let Some(px) = model.project(&camera.world_to_camera(&l.position)) else {
+            continue;
+        };
+        let (Some(t), Some(d), Some(p)) = (
+            track.get_mut(queries),
+            descriptor.get_mut(queries),
+            pixel.get_mut(queries),
+        ) else {
+            break;
+        };
+        *t = l.track;
+        *d = desc;
+        // Off-image and non-finite predictions simply find no candidate.
+        *p = [px.x as f32, px.y as f32];
+        queries += 1;
+    }
+    queries
+}
+
 impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
     /// Searches the window's landmarks whose track no feature of `frame` continues near their
     /// pixel predicted from `guess` (the keyframe's first pose), by descriptor. A feature so
@@ -33,30 +72,19 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         tracked.copy_from_slice(self.current.get(..n).unwrap_or_default());
         crate::sort::sort_by_key(tracked, |&t| t);
         let camera = CameraPose::of_robot(guess, mount);
-        let mut queries = 0;
-        for l in self.landmarks.iter().take(self.landmark_count) {
-            let Some(descriptor) = l.descriptor else {
-                continue;
-            };
-            if tracked.binary_search(&l.track).is_ok() {
-                continue;
-            }
-            let Some(px) = model.project(&camera.world_to_camera(&l.position)) else {
-                continue;
-            };
-            let (Some(t), Some(d), Some(p)) = (
-                s.query_track.get_mut(queries),
-                s.query_descriptor.get_mut(queries),
-                s.query_px.get_mut(queries),
-            ) else {
-                break;
-            };
-            *t = l.track;
-            *d = descriptor;
-            // Off-image and non-finite predictions simply find no candidate.
-            *p = [px.x as f32, px.y as f32];
-            queries += 1;
-        }
+        let landmarks = self
+            .landmarks
+            .get(..self.landmark_count)
+            .unwrap_or_default();
+        let queries = landmark_queries(
+            &mut s.query_track,
+            &mut s.query_descriptor,
+            &mut s.query_px,
+            landmarks,
+            &camera,
+            model,
+            |track| tracked.binary_search(&track).is_ok(),
+        );
         let keyframes = self
             .keyframes
             .get(..self.keyframe_count)

@@ -207,29 +207,15 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
                 .unwrap_or_default();
             let s = &mut self.refind;
             let camera = CameraPose::of_robot(&kf.pose, mount);
-            let mut queries = 0;
-            for l in landmarks {
-                let Some(descriptor) = l.descriptor else {
-                    continue;
-                };
-                if kf.find(l.track).is_some() {
-                    continue;
-                }
-                let Some(px) = model.project(&camera.world_to_camera(&l.position)) else {
-                    continue;
-                };
-                let (Some(t), Some(d), Some(p)) = (
-                    s.query_track.get_mut(queries),
-                    s.query_descriptor.get_mut(queries),
-                    s.query_px.get_mut(queries),
-                ) else {
-                    break;
-                };
-                *t = l.track;
-                *d = descriptor;
-                *p = [px.x as f32, px.y as f32];
-                queries += 1;
-            }
+            let queries = landmarks::landmark_queries(
+                &mut s.query_track,
+                &mut s.query_descriptor,
+                &mut s.query_px,
+                landmarks,
+                &camera,
+                model,
+                |track| kf.find(track).is_some(),
+            );
             // Every feature of the keyframe competes, so that the ratio test sees the
             // look-alikes; but only one whose track has no landmark and has ended (the newest
             // keyframe does not continue it) may become a sighting: relabelling it takes
