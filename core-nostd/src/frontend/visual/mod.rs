@@ -20,6 +20,8 @@
 //!   the window solve: each keyframe's pose relative to the previous one.
 //! * [`window`]: sliding-window bundle adjustment of planar keyframe poses and 3D landmarks,
 //!   with the wheel+gyro motion as a prior between keyframes.
+//! * [`vocab`]: place recognition: a vocabulary tree of binary words, bags of words per
+//!   keyframe and the query for loop candidates.
 //!
 //! Everything works on borrowed or fixed-capacity storage: nothing allocates, nothing recurses,
 //! nothing reads a clock, and no input makes it panic. Pixels are `f32`, geometry `f64`, and
@@ -36,6 +38,7 @@ pub mod pyramid;
 pub mod track;
 pub mod triangulate;
 pub mod two_view;
+pub mod vocab;
 pub mod window;
 
 pub use brief::{describe, describe_all, Descriptor};
