@@ -77,6 +77,10 @@ pub enum Command {
     /// the hardware).
     #[command(subcommand)]
     Emulate(EmulateCommand),
+    /// Train the place-recognition vocabulary of binary words from images (`train`), or
+    /// measure place recognition against a ground-truth loop matrix (`eval`).
+    #[command(subcommand)]
+    Vocab(crate::vocab::VocabCommand),
 }
 
 /// The devices `cloi emulate` can play.
@@ -109,6 +113,7 @@ pub fn run(cli: Cli, out: &mut dyn Write) -> Result<()> {
         Command::Localize(args) => crate::map::command::run_localize(&args, cli.quiet, out),
         Command::ShowMap(args) => crate::map::show::run(&args, out),
         Command::Run(args) => crate::live::run(&args, cli.quiet, out),
+        Command::Vocab(cmd) => crate::vocab::run(&cmd, out),
         Command::Emulate(EmulateCommand::Ld06(args)) => {
             crate::live::emulate::run(crate::live::LidarKind::Ld06, &args, out)
         }

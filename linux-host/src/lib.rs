@@ -8,7 +8,8 @@
 //!
 //! * [`cli`]: the subcommands and their dispatch;
 //! * [`map`]: `cloi map`, the mapping driver (inputs, configuration, threads, outputs);
-//! * [`optimize`], [`prune`], [`prune_online`], [`corrupt`]: pose-graph files.
+//! * [`optimize`], [`prune`], [`prune_online`], [`corrupt`]: pose-graph files;
+//! * [`vocab`]: `cloi vocab`, the place-recognition vocabulary (training, evaluation).
 
 pub mod cli;
 pub mod corrupt;
@@ -17,6 +18,7 @@ pub mod map;
 pub mod optimize;
 pub mod prune;
 pub mod prune_online;
+pub mod vocab;
 
 /// The evaluation: the crate [`cloi_eval`].
 pub use cloi_eval as eval;
