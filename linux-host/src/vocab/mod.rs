@@ -255,6 +255,22 @@ pub fn write_curve(result: &eval::Evaluation, out: &mut dyn Write) -> Result<()>
             p.threshold, p.accepted, p.correct, p.precision, p.recall
         )?;
     }
+    let mut wrong: Vec<_> = result.matches.iter().filter(|m| !m.correct).collect();
+    wrong.sort_by(|a, b| b.candidate.normalised.total_cmp(&a.candidate.normalised));
+    write!(
+        out,
+        "wrong best matches (image -> match: normalised score, 1-based):"
+    )?;
+    for m in wrong.iter().take(10) {
+        write!(
+            out,
+            " {} -> {}: {:.3};",
+            m.query + 1,
+            m.candidate.entry + 1,
+            m.candidate.normalised
+        )?;
+    }
+    writeln!(out)?;
     match result.recall_at_full_precision() {
         Some(p) => writeln!(
             out,
@@ -267,4 +283,34 @@ pub fn write_curve(result: &eval::Evaluation, out: &mut dyn Write) -> Result<()>
         )?,
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_vocabulary_round_trips_through_its_bytes_and_garbage_is_an_error() {
+        let images: Vec<Vec<Descriptor>> = (0..6u32)
+            .map(|i| {
+                (0..40u32)
+                    .map(|j| {
+                        Descriptor([i.wrapping_mul(0x9E37_79B9) ^ j.wrapping_mul(0x85EB_CA6B); 8])
+                    })
+                    .collect()
+            })
+            .collect();
+        let cfg = TrainConfig {
+            branching: 4,
+            depth: 2,
+            ..TrainConfig::default()
+        };
+        let trained = train_on(&cfg, &images).unwrap();
+        let bytes = trained.to_bytes().unwrap();
+        let back = Trained::from_bytes(&bytes).unwrap();
+        assert_eq!((back.nodes, back.documents), (trained.nodes, 6));
+        assert!(Trained::from_bytes(b"not a vocabulary").is_err());
+        assert!(Trained::from_bytes(&bytes[..bytes.len() - 1]).is_err());
+        assert!(Trained::from_bytes(&[]).is_err());
+    }
 }
