@@ -5,12 +5,12 @@
 //! One job per file:
 //! * [`tree`]: the vocabulary, a tree of Hamming centroids in caller-lent slots, and the
 //!   descent that gives a descriptor its word.
-//! * [`train`]: hierarchical k-majority clustering with deterministic seeding, and the
+//! * [`train`](mod@train): hierarchical k-majority clustering with deterministic seeding, and the
 //!   inverse document frequency of each word, over caller-lent scratch.
 //! * [`bag`]: a frame's L1-normalised TF-IDF bag in fixed storage, and the similarity of two.
 //! * [`database`]: keyframe bags in caller-lent storage and the query for loop candidates,
 //!   scored relative to the query's recent neighbours.
-//! * [`file`]: the checked binary file a trained vocabulary is saved to and loaded from.
+//! * [`file`](mod@file): the checked binary file a trained vocabulary is saved to and loaded from.
 //!
 //! A tree rather than a flat list of words: finding a word costs `branching * depth` Hamming
 //! distances (30 for the default 10 x 3) instead of one per word (1000), which is what makes
