@@ -86,7 +86,7 @@ fn place_recognition_on_the_rtabmap_samples() {
 /// Recall at precision 1 (9 of 44 revisits when measured: the 10th best-scored match, image
 /// 18 to image 6, is wrong).
 const RECALL_AT_FULL_PRECISION: f64 = 0.20;
-/// Recall at precision 0.9 or more (33 of 44 when measured, precision 0.943).
-const RECALL_AT_PRECISION_90: f64 = 0.74;
+/// The largest recall at precision 0.9 or more (34 of 44 when measured, at precision 0.919).
+const RECALL_AT_PRECISION_90: f64 = 0.77;
 /// Revisits whose best match is right at the lowest threshold (39 of 44 when measured).
 const BEST_MATCH_RECALL: f64 = 0.88;
