@@ -12,6 +12,7 @@
 //! The data is required: a missing folder fails the test with the reason, never skips it.
 
 use std::path::PathBuf;
+use std::process::Command;
 
 use cloi_core::frontend::visual::vocab::TrainConfig;
 use cloi_host::io::dataset::shared_data_dir;
@@ -90,3 +91,68 @@ const RECALL_AT_FULL_PRECISION: f64 = 0.20;
 const RECALL_AT_PRECISION_90: f64 = 0.77;
 /// Revisits whose best match is right at the lowest threshold (39 of 44 when measured).
 const BEST_MATCH_RECALL: f64 = 0.88;
+
+#[test]
+fn the_cli_trains_from_a_pattern_and_refuses_a_damaged_vocabulary() {
+    let dir = samples();
+    let tmp = tempfile::tempdir().expect("temporary folder");
+    let out = tmp.path().join("vocab.bin");
+    let cloi = |args: &[&std::ffi::OsStr]| {
+        Command::new(env!("CARGO_BIN_EXE_cloi"))
+            .args(args)
+            .output()
+            .expect("running cloi")
+    };
+    // Images 80 to 84.
+    let pattern = dir.join("8?.jpg");
+    let run = cloi(&[
+        "vocab".as_ref(),
+        "train".as_ref(),
+        "--images".as_ref(),
+        pattern.as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    let stdout = String::from_utf8_lossy(&run.stdout);
+    assert!(
+        run.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(stdout.starts_with("5 images, "), "{stdout}");
+    let mut bytes = std::fs::read(&out).expect("the vocabulary file");
+    assert!(Trained::from_bytes(&bytes).is_ok());
+
+    // One flipped byte: `eval` stops with the reason before reading any image.
+    let n = bytes.len();
+    bytes[n / 2] ^= 0x40;
+    std::fs::write(&out, &bytes).expect("writing");
+    let truth = dir.join("samples_GT.bmp");
+    let run = cloi(&[
+        "vocab".as_ref(),
+        "eval".as_ref(),
+        "--images".as_ref(),
+        dir.as_os_str(),
+        "--truth".as_ref(),
+        truth.as_os_str(),
+        "--vocab".as_ref(),
+        out.as_os_str(),
+    ]);
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!run.status.success());
+    assert!(
+        stderr.contains("not a valid vocabulary: BadCrc"),
+        "{stderr}"
+    );
+
+    let run = cloi(&[
+        "vocab".as_ref(),
+        "train".as_ref(),
+        "--images".as_ref(),
+        tmp.path().join("*.jpg").as_os_str(),
+        "--out".as_ref(),
+        out.as_os_str(),
+    ]);
+    assert!(!run.status.success());
+    assert!(String::from_utf8_lossy(&run.stderr).contains("no JPEG or PNG image found"));
+}

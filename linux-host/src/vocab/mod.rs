@@ -218,19 +218,26 @@ fn run_train(args: &TrainArgs, out: &mut dyn Write) -> Result<()> {
 }
 
 fn run_eval(args: &EvalArgs, out: &mut dyn Write) -> Result<()> {
-    let paths = images::list_images(&args.images)?;
-    let described = images::describe_images(&paths)?;
-    let trained = match &args.vocab {
-        Some(p) => Trained::from_bytes(
-            &std::fs::read(p).with_context(|| format!("reading {}", p.display()))?,
-        )
-        .with_context(|| p.display().to_string())?,
-        None => train_on(&TrainConfig::default(), &described)?,
-    };
+    // The files first: a bad one fails before the images are read.
     let truth_bytes =
         std::fs::read(&args.truth).with_context(|| format!("reading {}", args.truth.display()))?;
     let truth = eval::LoopTruth::from_bmp(&truth_bytes)
         .with_context(|| args.truth.display().to_string())?;
+    let loaded = match &args.vocab {
+        Some(p) => Some(
+            Trained::from_bytes(
+                &std::fs::read(p).with_context(|| format!("reading {}", p.display()))?,
+            )
+            .with_context(|| p.display().to_string())?,
+        ),
+        None => None,
+    };
+    let paths = images::list_images(&args.images)?;
+    let described = images::describe_images(&paths)?;
+    let trained = match loaded {
+        Some(t) => t,
+        None => train_on(&TrainConfig::default(), &described)?,
+    };
     let bags = bags_of(&trained, &described)?;
     let result = eval::evaluate(&bags, &truth, args.recent)?;
     write_curve(&result, out)

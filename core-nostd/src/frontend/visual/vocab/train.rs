@@ -303,7 +303,7 @@ fn update_centres(
         }
         let mut next = Descriptor::default();
         for (i, &n) in bits.iter().enumerate() {
-            if 2 * n > size {
+            if 2 * u64::from(n) > u64::from(size) {
                 if let Some(w) = next.0.get_mut(i / 32) {
                     *w |= 1 << (i % 32);
                 }
