@@ -70,3 +70,15 @@ pub fn with_mapfile_crcs(data: &[u8]) -> Vec<u8> {
     }
     out
 }
+
+/// `data` with the trailing CRC-32 of a vocabulary file (its last 4 bytes) rewritten to match
+/// every byte before it; inputs shorter than the CRC are left as they are.
+pub fn with_vocab_crc(data: &[u8]) -> Vec<u8> {
+    use cloi_core::frontend::visual::vocab::file::CRC_LEN;
+    let mut out = data.to_vec();
+    if let Some(body_len) = out.len().checked_sub(CRC_LEN) {
+        let crc = cloi_core::sensor::log::crc32(&out[..body_len]);
+        out[body_len..].copy_from_slice(&crc.to_le_bytes());
+    }
+    out
+}
