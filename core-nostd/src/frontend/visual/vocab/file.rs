@@ -17,7 +17,7 @@
 //! | 4 | CRC-32 (IEEE) of every byte before it |
 //!
 //! Reading checks the length against the header before anything else, then the CRC, then
-//! every value (finite non-negative weights, and a tree in which the root and every present
+//! every value (weights from 0 to [`MAX_WEIGHT`], and a tree in which the root and every present
 //! inner slot have a present child, so every descriptor gets a word). No input panics.
 
 use super::super::brief::{Descriptor, BITS};
@@ -33,6 +33,10 @@ pub const HEADER_LEN: usize = 24;
 pub const NODE_LEN: usize = 40;
 /// Bytes of the trailing CRC.
 pub const CRC_LEN: usize = 4;
+/// Largest weight a file may hold: a weight is an inverse document frequency `ln(N / n_w)`
+/// with at most `N = 2^32` training images (`ln 2^32` is 22.18), and a bound keeps a bag's sum
+/// of weights finite (huge finite weights overflow it to infinity, and the bag to NaN).
+pub const MAX_WEIGHT: f32 = 22.2;
 
 /// The size of the file of a vocabulary of `nodes` slots.
 pub const fn file_len(nodes: usize) -> usize {
@@ -61,7 +65,7 @@ pub enum VocabFileError {
     },
     /// The CRC does not match: the file is damaged.
     BadCrc,
-    /// A weight is not finite or negative, or the tree has a dead end.
+    /// A weight is not finite, negative or over [`MAX_WEIGHT`], or the tree has a dead end.
     BadValue,
     /// The caller's slots (when reading) or bytes (when writing) are too few.
     StorageTooSmall,
@@ -206,7 +210,7 @@ pub fn read<'n>(
         }
         let size = u32_at(rec, 32).ok_or(VocabFileError::Truncated)?;
         let weight = f32::from_bits(u32_at(rec, 36).ok_or(VocabFileError::Truncated)?);
-        if !weight.is_finite() || weight < 0.0 {
+        if !(0.0..=MAX_WEIGHT).contains(&weight) {
             return Err(VocabFileError::BadValue);
         }
         *slot = Node {

@@ -355,6 +355,23 @@ fn a_vocabulary_file_round_trips_and_damage_is_refused() {
         file::read(&bad, &mut back).unwrap_err(),
         VocabFileError::BadValue
     );
+    // Weights past ln(2^32), re-sealed: huge finite ones once summed a bag to infinity and
+    // its weights to NaN (fuzz/regressions/vocab/huge-weights-nan-bag.cloivocab).
+    for w in [f32::MAX, f32::NAN, f32::INFINITY, file::MAX_WEIGHT * 1.01] {
+        let mut bad = bytes.clone();
+        let leaf = nodes.len() - 1;
+        let at = file::HEADER_LEN + leaf * file::NODE_LEN + 36;
+        bad[at..at + 4].copy_from_slice(&w.to_bits().to_le_bytes());
+        let crc = crc32fast::hash(&bad[..n - 4]);
+        bad[n - 4..].copy_from_slice(&crc.to_le_bytes());
+        assert_eq!(
+            file::read(&bad, &mut back).unwrap_err(),
+            VocabFileError::BadValue,
+            "weight {w}"
+        );
+    }
+    // The largest trained weight, ln(2^32) for one image in 2^32, is read.
+    assert!(libm::logf(u32::MAX as f32) <= file::MAX_WEIGHT);
     // A tree whose first-level slots are all absent, re-sealed: a dead end.
     let mut bad = bytes.clone();
     for s in 0..4 {
