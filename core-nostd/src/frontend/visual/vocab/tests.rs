@@ -179,11 +179,10 @@ impl Places {
     }
 }
 
-#[test]
-fn a_bag_scores_one_against_itself_and_less_against_a_changed_frame() {
-    let mut rng = Rng::new(3);
-    let places = Places::new(&mut rng);
-    let frames: Vec<Vec<Descriptor>> = (0..10).map(|p| places.frame(p, &mut rng)).collect();
+/// Ten places, one frame of each, and a vocabulary of 8 x 3 trained on those frames.
+fn ten_places(rng: &mut Rng) -> (Places, Vec<Vec<Descriptor>>, Vec<Node>) {
+    let places = Places::new(rng);
+    let frames: Vec<Vec<Descriptor>> = (0..10).map(|p| places.frame(p, rng)).collect();
     let all: Vec<Descriptor> = frames.iter().flatten().copied().collect();
     let docs: Vec<&[Descriptor]> = frames.iter().map(Vec::as_slice).collect();
     let cfg = TrainConfig {
@@ -192,6 +191,13 @@ fn a_bag_scores_one_against_itself_and_less_against_a_changed_frame() {
         ..TrainConfig::default()
     };
     let nodes = trained(&cfg, &all, &docs);
+    (places, frames, nodes)
+}
+
+#[test]
+fn a_bag_scores_one_against_itself_and_less_against_a_changed_frame() {
+    let mut rng = Rng::new(3);
+    let (places, frames, nodes) = ten_places(&mut rng);
     let vocab = Vocabulary::new(8, 3, &nodes).unwrap();
 
     let bag_of = |d: &[Descriptor]| {
@@ -225,16 +231,7 @@ fn a_bag_scores_one_against_itself_and_less_against_a_changed_frame() {
 #[test]
 fn the_database_finds_the_revisited_place() {
     let mut rng = Rng::new(8);
-    let places = Places::new(&mut rng);
-    let frames: Vec<Vec<Descriptor>> = (0..10).map(|p| places.frame(p, &mut rng)).collect();
-    let all: Vec<Descriptor> = frames.iter().flatten().copied().collect();
-    let docs: Vec<&[Descriptor]> = frames.iter().map(Vec::as_slice).collect();
-    let cfg = TrainConfig {
-        branching: 8,
-        depth: 3,
-        ..TrainConfig::default()
-    };
-    let nodes = trained(&cfg, &all, &docs);
+    let (places, frames, nodes) = ten_places(&mut rng);
     let vocab = Vocabulary::new(8, 3, &nodes).unwrap();
 
     // A route through places 0..9, two frames each, then back at place 2.
