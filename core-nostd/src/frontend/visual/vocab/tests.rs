@@ -231,7 +231,7 @@ fn a_bag_scores_one_against_itself_and_less_against_a_changed_frame() {
 #[test]
 fn the_database_finds_the_revisited_place() {
     let mut rng = Rng::new(8);
-    let (places, frames, nodes) = ten_places(&mut rng);
+    let (places, _, nodes) = ten_places(&mut rng);
     let vocab = Vocabulary::new(8, 3, &nodes).unwrap();
 
     // A route through places 0..9, two frames each, then back at place 2.
