@@ -120,6 +120,7 @@ fn intel_mapper_on_the_a9_matches_x86_within_budget() {
         keep_gpe: true,
         save_map: Some(dir.join("host.cloimap")),
         localize: None,
+        visual: None,
     };
     let input = open_input(&log, &InputOptions::default()).unwrap();
     let host = run(input, &settings).expect("cloi map on x86-64");
@@ -267,6 +268,7 @@ fn localization_on_the_a9_matches_x86(
             initial_pose: Some(cloi_core::Se2::IDENTITY),
             extend: false,
         }),
+        visual: None,
     };
     let input = open_input(log, &InputOptions::default()).unwrap();
     let host = run(input, &settings).expect("cloi localize on x86-64");

@@ -3,15 +3,17 @@
 //! features and frame-to-frame matches the visual odometry starts from, and the low-feature
 //! frames are counted.
 //!
-//! Camera frames do not become frame nodes yet: that needs the visual odometry (triangulation
-//! and the sliding-window adjustment), after which a camera keyframe joins the graph like a
-//! LiDAR one (module `frames`), tied by odometry or, when synchronized, by the zero-constraint
-//! of eq. (1). Until then the LiDAR alone builds the map and the images are measured.
+//! With the visual odometry's storage ([`CameraParts::visual`]), camera 0's images go on to
+//! the visual odometry and its keyframes become frame nodes (module `visual`): the mapper of
+//! sensor set C. Without it the images are only tracked and measured; that is also how a
+//! mapper with a LiDAR takes them, the LiDAR alone building the map (tying camera keyframes
+//! to LiDAR ones, by odometry or by the zero-constraint of eq. (1), is not done yet).
 //!
 //! The storage is optional ([`CameraParts`]): a mapper built without it (the LiDAR-only
 //! firmware) refuses images with [`MapperError::NoCamera`] and the caller counts them.
 
-use super::{Mapper, MapperError};
+use super::visual::VisualParts;
+use super::{FrameOutput, Mapper, MapperError};
 use crate::frontend::visual::matching::Match;
 use crate::frontend::visual::track::{CameraTrack, TrackScratch, TrackStats, TrackStep};
 use crate::frontend::visual::Keypoint;
@@ -34,10 +36,13 @@ pub struct CameraParts<'r> {
     pub corners: &'r mut [Keypoint],
     /// The matcher's output (as many as `corners`).
     pub matches: &'r mut [Match],
+    /// The visual odometry of camera 0 and its calibration: with it, camera 0's keyframes
+    /// become frame nodes (sensor set C); without it, images are only tracked.
+    pub visual: Option<VisualParts<'r>>,
 }
 
 /// What the mapper did with one image.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct ImageOutput {
     /// The image's stamp, ns.
@@ -46,10 +51,15 @@ pub struct ImageOutput {
     pub camera: u8,
     /// Features and matches to the camera's previous frame.
     pub track: TrackStep,
+    /// The robot's pose at the image, when the mapper runs the visual odometry (as a scan's
+    /// for a LiDAR).
+    pub frame: Option<FrameOutput>,
 }
 
 impl Mapper<'_> {
-    /// Tracks image `view` of camera `camera`, taken at `stamp` ns.
+    /// Tracks image `view` of camera `camera`, taken at `stamp` ns; with the visual odometry,
+    /// camera 0's image then gets a pose (the GPE's, or the worst-case prediction when
+    /// `deadline_passed`) and its keyframes become frame nodes (module `visual`).
     ///
     /// # Errors
     /// [`MapperError::NoCamera`] when the mapper has no camera storage or no track for
@@ -60,6 +70,7 @@ impl Mapper<'_> {
         camera: u8,
         stamp: i64,
         view: &ImageView<'_>,
+        deadline_passed: bool,
     ) -> Result<ImageOutput, MapperError> {
         let cfg = self.cfg.camera;
         let parts = self.cameras.as_mut().ok_or(MapperError::NoCamera)?;
@@ -75,10 +86,16 @@ impl Mapper<'_> {
         let step = track
             .track(stamp, view, &cfg, &mut scratch)
             .map_err(MapperError::Image)?;
+        let frame = if camera == 0 {
+            self.visual_frame(stamp, step.tracked, deadline_passed)
+        } else {
+            None
+        };
         Ok(ImageOutput {
             stamp,
             camera,
             track: step,
+            frame,
         })
     }
 

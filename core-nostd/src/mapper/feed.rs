@@ -241,7 +241,8 @@ impl<'s> Feeder<'s> {
     /// Camera `camera`'s image `view`, stamped `t` ns, to the mapper's camera stage. Images wait
     /// for nothing: they are tracked against the camera's previous image on arrival, and one
     /// whose stamp does not advance is rejected (counted per camera) rather than repaired,
-    /// since a camera's frames are not interpolated.
+    /// since a camera's frames are not interpolated. With the visual odometry
+    /// ([`Mapper::push_image`]), the image's pose comes back in [`ImageOutput::frame`].
     ///
     /// # Errors
     /// The mapper's rejection (see [`Mapper::push_image`]).
@@ -251,8 +252,9 @@ impl<'s> Feeder<'s> {
         camera: u8,
         t: i64,
         view: &ImageView<'_>,
+        deadline_passed: bool,
     ) -> Result<ImageOutput, MapperError> {
-        m.push_image(camera, t, view)
+        m.push_image(camera, t, view, deadline_passed)
     }
 
     /// A scan, with the odometry pose its source recorded at its time, if any. Gives the scan

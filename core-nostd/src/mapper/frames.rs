@@ -113,11 +113,44 @@ pub(crate) fn node_index(nodes: &[NodeMeta], serial: u32) -> Option<usize> {
 }
 
 /// Information of a covariance, the identity when it cannot be inverted.
-fn fixed_info(cov: &Cov3) -> Info3 {
+pub(crate) fn fixed_info(cov: &Cov3) -> Info3 {
     spd_inverse(cov).unwrap_or_else(Info3::identity)
 }
 
 impl Mapper<'_> {
+    /// Adds the frame node `meta` (its serial the next one) at `global` with `edge` to the
+    /// graph, pruning first when the pools are nearly full; its serial, or `None` (counted)
+    /// when no room was made. Whatever sensor made the keyframe, a node joins the graph here.
+    pub(crate) fn join_graph(
+        &mut self,
+        global: &Se2,
+        mut meta: NodeMeta,
+        edge: Option<NewEdge>,
+    ) -> Option<u32> {
+        // A detached back-end answers later: the request goes out early enough.
+        let per_node = 1 + usize::from(self.cfg.loops.max_candidates);
+        if self
+            .back
+            .ahead(self.st.mirror.counts, per_node)
+            .nearly_full()
+        {
+            self.prune_pool();
+        }
+        // The edge joins the newest node, or the map's node, as they are after the pruning.
+        let serial = self.st.frames.next_serial;
+        meta.serial = serial;
+        match self.back.add_frame_node(*global, meta, edge) {
+            Ok(()) => {}
+            Err(AddNodeError::Unlinked | AddNodeError::Full) => {
+                self.st.stats.keyframes_dropped += 1;
+                return None;
+            }
+        }
+        self.st.frames.next_serial += 1;
+        self.st.stats.keyframes += 1;
+        Some(serial)
+    }
+
     /// Makes the scan at front-end pose `pose` a frame node when it is a keyframe; its serial
     /// when one was made.
     pub(crate) fn keyframe(&mut self, stamp: i64, pose: &Se2, global: &Se2) -> Option<u32> {
@@ -161,33 +194,14 @@ impl Mapper<'_> {
                 kind: EdgeKind::Loop,
             }),
         };
-        // A detached back-end answers later: the request goes out early enough.
-        let per_node = 1 + usize::from(self.cfg.loops.max_candidates);
-        if self
-            .back
-            .ahead(self.st.mirror.counts, per_node)
-            .nearly_full()
-        {
-            self.prune_pool();
-        }
-        // The edge joins the newest node, or the map's node, as they are after the pruning.
-        let serial = self.st.frames.next_serial;
         let meta = NodeMeta {
-            serial,
+            serial: self.st.frames.next_serial,
             stamp,
             frontend: *pose,
             travel,
             submap: NO_SUBMAP,
         };
-        match self.back.add_frame_node(*global, meta, edge) {
-            Ok(()) => {}
-            Err(AddNodeError::Unlinked | AddNodeError::Full) => {
-                self.st.stats.keyframes_dropped += 1;
-                return None;
-            }
-        }
-        self.st.frames.next_serial += 1;
-        self.st.stats.keyframes += 1;
+        let serial = self.join_graph(global, meta, edge)?;
         let submap = self.submap_for(serial, pose);
         if let Some(slot) = submap {
             let opens =

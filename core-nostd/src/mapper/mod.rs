@@ -1,5 +1,6 @@
-//! The LiDAR mapper (sensor set L): the paper's block diagram (Fig. 2) assembled over fixed
-//! storage.
+//! The mapper: the paper's block diagram (Fig. 2) assembled over fixed storage, for a LiDAR
+//! (sensor set L, below) or one camera (sensor set C: module `visual`, where camera 0's visual
+//! keyframes become the frame nodes and the same GPE and back-end run on them).
 //!
 //! One scan ([`Mapper::push_scan`]) passes the stages in order:
 //! 1. **preprocess**: the stamp is checked (a scan not later than the previous one is rejected
@@ -27,8 +28,9 @@
 //!
 //! # Frames and nodes
 //! A frame node is created per keyframe; the LiDAR keyframe hangs off it with the identity
-//! offset (a camera keyframe at another time would be its own frame node tied by odometry, one
-//! at the same time by a zero-constraint). Each node remembers its front-end pose; the pose
+//! offset, and so does a visual keyframe in sensor set C (module `visual`). Camera keyframes
+//! next to LiDAR ones (C+L: their own frame nodes tied by odometry, or by a zero-constraint
+//! at the same time) are not made yet. Each node remembers its front-end pose; the pose
 //! graph holds its global estimate. A submap's grid lives in the frame of its anchor node (the
 //! keyframe that opened it), so its world pose is the anchor's estimate.
 //!
@@ -53,6 +55,7 @@ mod submaps;
 pub mod sync;
 mod turns;
 mod types;
+mod visual;
 
 use crate::backend::prune::PruneScratch;
 use crate::backend::schedule::BackendSchedule;
@@ -76,6 +79,10 @@ pub use link::{BackendWorker, LinkQueues, LINK_CAPACITY, LINK_MAX_SUBMAPS};
 pub use localize::{LocalizeCounters, GLOBAL_BUDGET, LOST_MISSES};
 pub use submaps::SubmapMeta;
 pub use types::{FrameOutput, MapperError, MapperStats, Probe, ScanInput, Section};
+pub use visual::{
+    CameraOdometry, VisualCounters, VisualParts, VisualState, VO_KEYFRAMES, VO_LANDMARKS,
+    VO_OBSERVATIONS,
+};
 
 use back::BackEnd;
 use frames::FrameState;

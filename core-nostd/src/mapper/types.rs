@@ -173,8 +173,9 @@ pub struct ScanInput<'a> {
     pub mounting: Se2,
 }
 
-/// The result of one accepted scan.
+/// The result of one accepted scan (or camera image, in sensor set C).
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct FrameOutput {
     /// Time stamp, ns.
     pub stamp: i64,

@@ -196,6 +196,7 @@ pub(crate) fn execute_input(
         keep_gpe: false,
         save_map: args.save.clone(),
         localize,
+        visual: args.input_args.visual_calibration(args.input.as_deref())?,
     };
     let result = run(input, &settings)?;
     for w in &result.warnings {

@@ -52,10 +52,14 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 
 use anyhow::{bail, Context, Result};
+use cloi_core::frontend::visual::{
+    CameraExtrinsic, CameraModel, Intrinsics, Kb4, Pinhole, VoConfig,
+};
 use cloi_core::mapper::MAX_CAMERAS;
 use cloi_core::sensor::PixelFormat;
 use cloi_core::Se2;
 
+use super::resources::VisualCalibration;
 use crate::io::bag_read::{BagReadOptions, BagReader, SensorMsg, TopicSelection};
 use crate::io::camera_frame::{self, Pixels};
 use crate::io::carmen::{CarmenLaser, CarmenReader, CarmenRecord, LaserSource};
@@ -1276,7 +1280,7 @@ pub fn sim_session_input(
     )
 }
 
-/// [`sim_input`] with a full simulator configuration (its sensor set must include the LiDAR).
+/// [`sim_input`] with a full simulator configuration (sensor set L, C or C+L).
 ///
 /// # Errors
 /// See [`sim_input`].
@@ -1284,8 +1288,8 @@ pub fn sim_input_with(world: &str, session: u32, cfg: SimConfig) -> Result<Input
     if !(cfg.duration > 0.0 && cfg.duration.is_finite()) {
         bail!("the simulated duration must be a positive number of seconds");
     }
-    if !cfg.sensors.has_lidar() {
-        bail!("the mapper needs the simulated LiDAR (sensor set L or C+L)");
+    if !cfg.sensors.has_lidar() && cfg.sensors != SensorSet::Camera {
+        bail!("the mapper takes the simulated sensor sets L, C and C+L");
     }
     let file = crate::sim::command::load_world(world, cfg.duration)?;
     let world = crate::sim::command::session_world(&file, session, &mut std::io::sink())?;
@@ -1350,6 +1354,16 @@ pub struct InputArgs {
     /// them costs a few milliseconds per image).
     #[arg(long)]
     pub no_images: bool,
+    /// Which sensors map: `L` (the LiDAR; images left out), `C` (camera 0 with the wheels and
+    /// gyro: its visual keyframes are the frame nodes; scans left out), or `C+L` (the LiDAR
+    /// maps, the images are tracked). Default: what the input has, as `C+L`.
+    #[arg(long, value_parser = parse_sensors)]
+    pub sensors: Option<SensorSet>,
+    /// Camera 0's calibration for `--sensors C`: the sidecar `cloi sim` writes beside its bag
+    /// (`X.sim.json`). Default: the sidecar beside INPUT, or the simulated robot's without
+    /// INPUT.
+    #[arg(long, value_name = "FILE")]
+    pub camera_calibration: Option<PathBuf>,
     /// Robot frame of a bag without odometry, for the laser's static transform.
     #[arg(long)]
     pub base_frame: Option<String>,
@@ -1384,7 +1398,7 @@ impl InputArgs {
                 odom: self.odom_topic.clone(),
                 imu: self.imu_topic.clone(),
                 // No topic has an empty name, so this takes none.
-                image: if self.no_images {
+                image: if self.no_images || self.sensors == Some(SensorSet::Lidar) {
                     Some(String::new())
                 } else {
                     self.image_topic.clone()
@@ -1401,14 +1415,145 @@ impl InputArgs {
     pub fn open(&self, input: Option<&Path>) -> Result<InputStream> {
         match input {
             Some(path) => open_input(path, &self.options()),
-            None => sim_session_input(
+            None => sim_input_with(
                 &self.sim_world,
                 self.sim_session,
-                self.sim_duration,
-                self.sim_seed,
+                SimConfig {
+                    duration: self.sim_duration,
+                    seed: self.sim_seed,
+                    sensors: match self.sensors {
+                        Some(SensorSet::Camera) => SensorSet::Camera,
+                        _ => SensorSet::Lidar,
+                    },
+                    ..SimConfig::default()
+                },
             ),
         }
     }
+
+    /// Camera 0's calibration when the camera maps (`--sensors C`), else `None`.
+    ///
+    /// # Errors
+    /// Another sensor set the mapper cannot take yet (2C), or a calibration that cannot be
+    /// read.
+    pub fn visual_calibration(&self, input: Option<&Path>) -> Result<Option<VisualCalibration>> {
+        match self.sensors {
+            None | Some(SensorSet::Lidar | SensorSet::CameraLidar) => return Ok(None),
+            Some(SensorSet::TwoCameras) => {
+                bail!("--sensors 2C is not mapped yet (the zero-constraint of two cameras)")
+            }
+            Some(SensorSet::Camera) => {}
+        }
+        let config = VoConfig::default();
+        let sidecar = match (&self.camera_calibration, input) {
+            (Some(file), _) => file.clone(),
+            (None, Some(path)) => path.with_extension("sim.json"),
+            (None, None) => {
+                let file = crate::sim::command::load_world(&self.sim_world, self.sim_duration)?;
+                let world = crate::sim::command::session_world(&file, 0, &mut std::io::sink())?;
+                let sim = Simulation::new(
+                    world,
+                    SimConfig {
+                        duration: self.sim_duration,
+                        seed: self.sim_seed,
+                        sensors: SensorSet::Camera,
+                        ..SimConfig::default()
+                    },
+                );
+                let cam = sim
+                    .rig
+                    .cameras
+                    .first()
+                    .context("the simulated robot has no camera")?;
+                return Ok(Some(VisualCalibration {
+                    model: cam.core_model().context("the simulated camera's lens")?,
+                    mount: cam.core_extrinsic(),
+                    config,
+                }));
+            }
+        };
+        read_calibration(&sidecar, config).map(Some)
+    }
+}
+
+/// `--sensors`: `L`, `C`, `2C` or `C+L`.
+fn parse_sensors(s: &str) -> Result<SensorSet, String> {
+    s.parse()
+}
+
+/// Camera 0 of a `cloi sim` sidecar (`X.sim.json`): its lens and mounting.
+///
+/// # Errors
+/// A file that cannot be read, is not such a sidecar, or names no usable camera.
+pub fn read_calibration(path: &Path, config: VoConfig) -> Result<VisualCalibration> {
+    let text = std::fs::read_to_string(path).with_context(|| {
+        format!(
+            "reading the camera calibration {} (--sensors C needs one: give --camera-calibration)",
+            path.display()
+        )
+    })?;
+    let v: serde_json::Value =
+        serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
+    let cam = &v["cameras"][0];
+    let num = |key: &str| -> Result<f64> {
+        cam[key].as_f64().with_context(|| {
+            format!(
+                "{}: cameras[0].{key} is missing or not a number",
+                path.display()
+            )
+        })
+    };
+    let triple = |key: &str| -> Result<[f64; 3]> {
+        let a = cam[key].as_array().filter(|a| a.len() == 3);
+        let a =
+            a.with_context(|| format!("{}: cameras[0].{key} is not [x, y, z]", path.display()))?;
+        let mut out = [0.0; 3];
+        for (o, x) in out.iter_mut().zip(a) {
+            *o = x
+                .as_f64()
+                .with_context(|| format!("{}: cameras[0].{key}", path.display()))?;
+        }
+        Ok(out)
+    };
+    let k = Intrinsics {
+        fx: num("fx")?,
+        fy: num("fy")?,
+        cx: num("cx")?,
+        cy: num("cy")?,
+    };
+    let model = match cam["model"].as_str() {
+        Some("pinhole") => CameraModel::Pinhole(Pinhole::new_checked(k)?),
+        Some("kannala_brandt") => {
+            let d = cam["k"]
+                .as_array()
+                .filter(|a| a.len() == 4)
+                .with_context(|| {
+                    format!("{}: cameras[0].k is not four coefficients", path.display())
+                })?;
+            let mut dist = [0.0; 4];
+            for (o, x) in dist.iter_mut().zip(d) {
+                *o = x
+                    .as_f64()
+                    .with_context(|| format!("{}: cameras[0].k", path.display()))?;
+            }
+            let max_theta = crate::sim::camera::FISHEYE_MAX_THETA_DEG.to_radians();
+            CameraModel::Kb4(Kb4::new_checked(k, dist, max_theta)?)
+        }
+        other => bail!(
+            "{}: cameras[0].model {other:?} is neither \"pinhole\" nor \"kannala_brandt\"",
+            path.display()
+        ),
+    };
+    let mount = CameraExtrinsic::mounted(
+        triple("mount_xyz")?,
+        num("yaw_deg")?.to_radians(),
+        num("tilt_deg")?.to_radians(),
+    );
+    Ok(VisualCalibration {
+        model,
+        mount,
+        config,
+    })
 }
 
 #[cfg(test)]

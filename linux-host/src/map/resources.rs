@@ -14,12 +14,13 @@ use cloi_core::frontend::odometry::{OdometryConfig, OdometryFusion};
 use cloi_core::frontend::scan::{ScanPoint, ScanPoints};
 use cloi_core::frontend::visual::frame::{scratch_bytes, MAX_FEATURES};
 use cloi_core::frontend::visual::matching::Match;
-use cloi_core::frontend::visual::{CameraTrack, Keypoint};
+use cloi_core::frontend::visual::{CameraExtrinsic, CameraModel, CameraTrack, Keypoint, VoConfig};
 use cloi_core::frontend::{KeyframeConfig, PointMap};
 use cloi_core::graph::{PoseEdge, PoseGraph, PoseNode};
 use cloi_core::mapper::{
-    CameraParts, Mapper, MapperConfig, MapperError, MapperParts, MapperState, NodeMeta, SubmapMeta,
-    LOCAL_MAP_POINTS, LOOP_REFERENCE_POINTS, MAX_CAMERAS, ODOMETRY_HISTORY, PYRAMID_LEVELS,
+    CameraOdometry, CameraParts, Mapper, MapperConfig, MapperError, MapperParts, MapperState,
+    NodeMeta, SubmapMeta, VisualParts, VisualState, LOCAL_MAP_POINTS, LOOP_REFERENCE_POINTS,
+    MAX_CAMERAS, ODOMETRY_HISTORY, PYRAMID_LEVELS,
 };
 use cloi_core::profile::ProfileSpec;
 
@@ -51,14 +52,28 @@ pub struct HeapResources {
 /// 1280 x 1024, above the VGA and 720p sensors of the robots this is for.
 pub const MAX_FRAME: (usize, usize) = (1280, 1024);
 
+/// Camera 0's calibration, for a mapper whose visual keyframes become frame nodes (sensor set
+/// C).
+#[derive(Debug, Clone, Copy)]
+pub struct VisualCalibration {
+    /// The lens.
+    pub model: CameraModel,
+    /// The mounting on the robot.
+    pub mount: CameraExtrinsic,
+    /// The visual odometry's parameters.
+    pub config: VoConfig,
+}
+
 /// The camera stage's storage (module `cloi_core::mapper::cameras`): one track per camera and
-/// the scratch of one frame of up to [`MAX_FRAME`] pixels.
+/// the scratch of one frame of up to [`MAX_FRAME`] pixels; with a calibration, the visual
+/// odometry's storage too.
 #[derive(Debug)]
 struct HostCameras {
     tracks: Vec<CameraTrack>,
     bytes: Vec<u8>,
     corners: Vec<Keypoint>,
     matches: Vec<Match>,
+    visual: Option<(VisualCalibration, Box<CameraOdometry>)>,
 }
 
 impl HostCameras {
@@ -68,26 +83,42 @@ impl HostCameras {
             bytes: vec![0; scratch_bytes(MAX_FRAME.0, MAX_FRAME.1)],
             corners: vec![Keypoint::default(); MAX_FEATURES],
             matches: vec![Match::default(); MAX_FEATURES],
+            visual: None,
         }
     }
 
-    /// Fresh tracks over the same storage.
+    /// Fresh tracks (and a fresh visual odometry) over the same storage.
     fn parts(&mut self) -> CameraParts<'_> {
         self.tracks.iter_mut().for_each(|t| *t = CameraTrack::new());
+        let visual = self.visual.as_mut().map(|(cal, odometry)| {
+            odometry.reset();
+            VisualParts {
+                odometry,
+                model: cal.model,
+                mount: cal.mount,
+                config: cal.config,
+                state: VisualState::NEW,
+            }
+        });
         CameraParts {
             tracks: &mut self.tracks,
             bytes: &mut self.bytes,
             corners: &mut self.corners,
             matches: &mut self.matches,
+            visual,
         }
     }
 
     fn bytes(&self) -> usize {
-        use std::mem::size_of_val;
+        use std::mem::{size_of, size_of_val};
         size_of_val(&self.tracks[..])
             + self.bytes.len()
             + size_of_val(&self.corners[..])
             + size_of_val(&self.matches[..])
+            + self
+                .visual
+                .as_ref()
+                .map_or(0, |_| size_of::<CameraOdometry>())
     }
 }
 
@@ -145,6 +176,17 @@ impl HeapResources {
             + size_of::<OdometryFusion<ODOMETRY_HISTORY>>()
             + self.prune.bytes()
             + size_of::<MapperState>()
+    }
+
+    /// Runs the visual odometry on camera 0 with `calibration`, its keyframes becoming frame
+    /// nodes (sensor set C), in the mappers started from now on.
+    pub fn enable_visual(&mut self, calibration: VisualCalibration) {
+        let odometry = match self.cameras.visual.take() {
+            Some((_, odometry)) => odometry,
+            // Built once per run; its few hundred kilobytes pass through the stack here.
+            None => Box::new(CameraOdometry::new()),
+        };
+        self.cameras.visual = Some((calibration, odometry));
     }
 
     /// Bytes of the camera stage's storage, on top of [`HeapResources::bytes`] (the firmware's

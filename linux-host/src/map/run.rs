@@ -38,7 +38,7 @@ use super::output::{
     compose_global_grid, peak_heap_bytes, peak_rss_bytes, MapProgress, MapReport, SubmapView,
     TumWriter,
 };
-use super::resources::HeapResources;
+use super::resources::{HeapResources, VisualCalibration};
 use super::spool::{Latency, ScanRecord, ScanSpool};
 use crate::graph_io::{write_g2o, FileEdge, GraphFile};
 use crate::io::map_out::{write_map_server, write_result_mcap, ResultMcap, TrajectoryPicture};
@@ -72,6 +72,9 @@ pub struct MapSettings {
     /// Start in a saved map: localize in it (`cloi localize`) or extend it (`cloi map
     /// --load`).
     pub localize: Option<LocalizeIn>,
+    /// Sensor set C: camera 0's calibration; its visual keyframes are the frame nodes and the
+    /// input's scans are left out.
+    pub visual: Option<VisualCalibration>,
 }
 
 /// The saved map a run starts in.
@@ -138,6 +141,9 @@ struct Driver<'s> {
     feeder: Feeder<'s>,
     /// Accepted scans whose pose was tied to the map (all when mapping).
     localized: u64,
+    /// Sensor set C: images are the frames, scans are left out (and counted).
+    camera_frames: bool,
+    scans_left_out: u64,
 }
 
 /// What the input still owes the mapper: one event, or the scans held at its end.
@@ -164,6 +170,9 @@ impl Driver<'_> {
             Feed::Event(SensorEvent::Gyro { t_ns, yaw_rate }) => {
                 let _ = self.feeder.gyro(mapper, *t_ns, *yaw_rate);
             }
+            Feed::Event(SensorEvent::Scan(_)) if self.camera_frames => {
+                self.scans_left_out += 1;
+            }
             Feed::Event(SensorEvent::Scan(s)) => {
                 let input = ScanInput {
                     stamp: s.t_ns,
@@ -186,7 +195,16 @@ impl Driver<'_> {
                     .scan(mapper, &input, s.odom, self.late)
                     .map(|p| (p, t0));
             }
-            Feed::Event(SensorEvent::Image(i)) => self.image(mapper, i),
+            Feed::Event(SensorEvent::Image(i)) => {
+                let t0 = Instant::now();
+                if let Some(out) = self.image(mapper, i) {
+                    // A posed image is a frame, as a scan is for a LiDAR.
+                    self.scan_us.add(t0.elapsed().as_secs_f64() * 1e6);
+                    self.accept(mapper, &out, i.t_ns);
+                    self.late = started.elapsed() > self.deadline;
+                    after_scan(mapper, i.t_ns);
+                }
+            }
             Feed::End => {}
         }
         let at_end = matches!(feed, Feed::End);
@@ -232,8 +250,8 @@ impl Driver<'_> {
     }
 
     /// Hands one image to the camera stage; refusals are counted there or, for an image the
-    /// mapper has no storage for, here.
-    fn image(&mut self, mapper: &mut Mapper<'_>, i: &ImageEvent) {
+    /// mapper has no storage for, here. The image's pose when the camera maps.
+    fn image(&mut self, mapper: &mut Mapper<'_>, i: &ImageEvent) -> Option<FrameOutput> {
         let view = ImageView::new_checked(
             Timestamp::from_nanos(i.t_ns),
             i.width,
@@ -244,10 +262,18 @@ impl Driver<'_> {
         );
         let Ok(view) = view else {
             self.images_refused += 1;
-            return;
+            return None;
         };
-        if let Err(MapperError::NoCamera) = self.feeder.image(mapper, i.camera, i.t_ns, &view) {
-            self.images_refused += 1;
+        match self
+            .feeder
+            .image(mapper, i.camera, i.t_ns, &view, self.late)
+        {
+            Ok(out) => out.frame,
+            Err(MapperError::NoCamera) => {
+                self.images_refused += 1;
+                None
+            }
+            Err(_) => None,
         }
     }
 
@@ -292,6 +318,12 @@ pub fn run(input: InputStream, settings: &MapSettings) -> Result<MapRun> {
     let stats_handle = input.stats_handle();
     let wall = Instant::now();
     let mut res = HeapResources::new(settings.profile.spec());
+    if let Some(calibration) = settings.visual {
+        if settings.localize.is_some() {
+            bail!("--sensors C maps a new map only (no --load or cloi localize yet)");
+        }
+        res.enable_visual(calibration);
+    }
     // The queues between the two threads of the threaded schedule (about 100 kB).
     let mut queues = Box::new(LinkQueues::new());
     let mapper = match &settings.localize {
@@ -381,6 +413,8 @@ fn drive<'r>(
             &mut held,
         ),
         localized: 0,
+        camera_frames: settings.visual.is_some(),
+        scans_left_out: 0,
     };
     let stats_handle = input.stats_handle();
     let max_scans = settings.max_scans.unwrap_or(u64::MAX);
@@ -582,6 +616,33 @@ fn drive<'r>(
     })
 }
 
+/// Unknown submaps (all cells `unknown`) covering the keyframes' poses, one per half a
+/// submap's side.
+fn unknown_views<'a>(
+    keyframes: &[(u32, Se2, Se2)],
+    grid: GridParams,
+    unknown: &'a [i8],
+) -> Vec<SubmapView<'a>> {
+    let step = 0.5 * f64::from(grid.side) * f64::from(grid.resolution);
+    let mut cells = std::collections::BTreeSet::new();
+    let mut views = Vec::new();
+    for (_, pose, _) in keyframes {
+        let cell = (
+            (pose.x / step).floor() as i64,
+            (pose.y / step).floor() as i64,
+        );
+        if pose.is_finite() && cells.insert(cell) {
+            views.push(SubmapView {
+                origin: Se2::new(cell.0 as f64 * step, cell.1 as f64 * step, 0.0),
+                side: grid.side as usize,
+                resolution: grid.resolution,
+                cells: unknown,
+            });
+        }
+    }
+    views
+}
+
 fn finish(
     f: Finished,
     settings: &MapSettings,
@@ -660,6 +721,14 @@ fn finish(
             cells,
         })
         .collect();
+    // Without a LiDAR there is no occupancy to draw: unknown cells around the keyframes
+    // frame the picture of the trajectory.
+    let unknown = vec![0i8; f.grid.side as usize * f.grid.side as usize];
+    let views = if views.is_empty() {
+        unknown_views(&f.keyframe_poses, f.grid, &unknown)
+    } else {
+        views
+    };
     let grid = compose_global_grid(&views)?;
     write_map_server(out, "map", &grid.as_grid_ref())?;
     let accepted = f.records.len();

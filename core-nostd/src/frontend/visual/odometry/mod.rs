@@ -301,6 +301,18 @@ impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
         }
     }
 
+    /// Forgets every frame, keyframe and landmark and zeroes the counters, in place: the value
+    /// is too large to be replaced through the stack.
+    pub fn reset(&mut self) {
+        self.keyframe_count = 0;
+        self.landmark_count = 0;
+        self.previous_len = 0;
+        self.next_track = 0;
+        self.last_stamp = None;
+        self.window.clear();
+        self.stats = VoStats::default();
+    }
+
     /// The counters so far.
     pub fn stats(&self) -> VoStats {
         self.stats

@@ -1,0 +1,339 @@
+//! Visual frame nodes: the camera's keyframes as nodes of the pose graph (the paper's section
+//! III-B.1 feeding III-B.3, Fig. 3), for a mapper without LiDAR (sensor set C).
+//!
+//! Each image of camera 0 that the camera stage tracked goes on to the visual odometry
+//! ([`VisualOdometry`], III-B.1), with the fused wheel+gyro pose at the image's time as its
+//! prior. Nothing here depends on the sensor: a visual keyframe becomes a frame node exactly as
+//! a LiDAR keyframe does (module `frames`), the pose graph, the GPE and the back-end do not
+//! know which sensor made it.
+//!
+//! # The camera's front-end pose
+//! The LiDAR front-end gives a drifting but locally exact pose per scan; here that role is
+//! played by the chain of the odometry's keyframe-to-keyframe poses: the first keyframe sits at
+//! its wheel+gyro pose, each later one at the previous one composed with the odometry's
+//! relative pose ([`KeyframeOutput::relative`]). Between keyframes, the wheel+gyro motion since
+//! the newest keyframe is composed onto it. The chain, not the odometry's own latest estimate
+//! of each keyframe, is what the nodes remember: the window keeps refining older keyframes
+//! after their node was made, and the odometry edge between two nodes must be exactly the
+//! difference of their front-end poses, as it is for LiDAR keyframes.
+//!
+//! # Per image
+//! 1. the odometry takes the tracked features (refused frames are counted, the image still
+//!    gets a pose from the wheels);
+//! 2. the front-end pose as above, and the travel (path length and heading change) since the
+//!    last image;
+//! 3. the GPE (III-C, eqs. 5-7) on that pose, as for a scan;
+//! 4. a keyframe of the odometry becomes a frame node at the GPE's pose, tied to the newest
+//!    node by an odometry edge whose measurement is the odometry's relative pose. The odometry
+//!    reports no covariance (its window does not expose its reduced system), so the edge's
+//!    information is the front-end motion model's over the travel between the two nodes, the
+//!    one LiDAR keyframes use.
+//!
+//! The frame gets no submap and no loop search: there are no scans to grid, and visual loop
+//! closure is not implemented yet.
+//!
+//! Memory: the odometry's storage comes with the camera stage's ([`VisualParts`]), lent by
+//! the caller; a mapper without it only tracks images, as before.
+
+use super::back::{EdgeFrom, NewEdge};
+use super::frames::{fixed_info, NodeMeta};
+use super::{FrameOutput, Mapper, NO_SUBMAP};
+use crate::frontend::lidar::{MotionNoise, Travel};
+use crate::frontend::visual::{
+    CameraExtrinsic, CameraModel, KeyframeOutput, VisualOdometry, VoConfig, VoFrame,
+};
+use crate::geom::Se2;
+use crate::gpe::GpeFrame;
+use crate::graph::EdgeKind;
+
+/// Keyframes in the visual odometry's sliding window.
+pub const VO_KEYFRAMES: usize = 8;
+/// Landmarks the window holds.
+pub const VO_LANDMARKS: usize = 600;
+/// Landmark sightings the window holds.
+pub const VO_OBSERVATIONS: usize = 5000;
+
+/// The visual odometry the mapper runs. Its size depends on what one camera sees at once, not
+/// on the area mapped, so it is the same in every profile.
+pub type CameraOdometry = VisualOdometry<VO_KEYFRAMES, VO_LANDMARKS, VO_OBSERVATIONS>;
+
+/// What the mapper needs to turn camera 0's images into frame nodes: the odometry's storage
+/// (lent by the caller) and the camera's calibration.
+#[derive(Debug)]
+pub struct VisualParts<'r> {
+    /// The odometry's storage (large: keep it in a static or on the heap).
+    pub odometry: &'r mut CameraOdometry,
+    /// The camera's lens.
+    pub model: CameraModel,
+    /// The camera's mounting on the robot.
+    pub mount: CameraExtrinsic,
+    /// The odometry's parameters.
+    pub config: VoConfig,
+    /// The stage's small state (start from [`VisualState::NEW`]).
+    pub state: VisualState,
+}
+
+/// Counters of the visual frame nodes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct VisualCounters {
+    /// Images given a pose.
+    pub frames: u32,
+    /// Images without a wheel+gyro pose at their time (no pose given).
+    pub no_odometry: u32,
+    /// Images the odometry refused (posed by the wheels alone).
+    pub refused: u32,
+    /// Keyframes of the odometry.
+    pub keyframes: u32,
+    /// Of them, made frame nodes.
+    pub nodes: u32,
+    /// Keyframes whose window solve failed (their relative pose is the wheel+gyro one).
+    pub unsolved: u32,
+}
+
+/// The visual front-end's small state.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct VisualState {
+    /// Newest keyframe: its front-end pose (the chain) and its wheel+gyro pose.
+    keyframe: Option<(Se2, Se2)>,
+    /// Previous image: stamp and front-end pose.
+    previous: Option<(i64, Se2)>,
+    travel: Travel,
+    counters: VisualCounters,
+}
+
+impl VisualState {
+    /// Before the first image.
+    pub const NEW: VisualState = VisualState {
+        keyframe: None,
+        previous: None,
+        travel: Travel::ZERO,
+        counters: VisualCounters {
+            frames: 0,
+            no_odometry: 0,
+            refused: 0,
+            keyframes: 0,
+            nodes: 0,
+            unsolved: 0,
+        },
+    };
+
+    /// The counters so far.
+    pub fn counters(&self) -> VisualCounters {
+        self.counters
+    }
+
+    /// The front-end pose of a frame whose wheel+gyro pose is `wheel`: the newest keyframe's
+    /// chained pose with the wheel motion since it, or the wheel pose before any keyframe.
+    fn frontend(&self, wheel: &Se2) -> Se2 {
+        match self.keyframe {
+            Some((front, at)) => front.compose(&at.between(wheel)),
+            None => *wheel,
+        }
+    }
+
+    /// Takes the front-end pose of keyframe `k` into the chain and gives it.
+    fn chain(&mut self, k: &KeyframeOutput, wheel: &Se2) -> Se2 {
+        let front = match (self.keyframe, k.relative) {
+            (Some((front, _)), Some(rel)) => front.compose(&rel),
+            // The first keyframe, or one the odometry could not relate: the wheels.
+            _ => self.frontend(wheel),
+        };
+        self.keyframe = Some((front, *wheel));
+        front
+    }
+}
+
+impl Mapper<'_> {
+    /// Camera 0's tracked image at `stamp` (`tracked` of its features matched to the previous
+    /// image) through the visual odometry, the GPE and, for a
+    /// keyframe, a new frame node; `None` when the mapper runs no visual odometry or has no
+    /// wheel+gyro pose at `stamp` (counted).
+    pub(crate) fn visual_frame(
+        &mut self,
+        stamp: i64,
+        tracked: usize,
+        deadline_passed: bool,
+    ) -> Option<FrameOutput> {
+        let wheel = self.odometry.pose_at(stamp);
+        let cameras = self.cameras.as_mut()?;
+        let visual = cameras.visual.as_mut()?;
+        let Ok(wheel) = wheel else {
+            visual.state.counters.no_odometry += 1;
+            return None;
+        };
+        let newest = cameras.tracks.first().and_then(|t| t.newest());
+        let frame = VoFrame {
+            stamp,
+            odometry: wheel,
+            keypoints: newest.map(|f| f.keypoints()).unwrap_or_default(),
+            matches: cameras.matches.get(..tracked).unwrap_or_default(),
+            descriptors: newest.map(|f| f.descriptors()).unwrap_or_default(),
+        };
+        let step = (visual.odometry).process(&frame, &visual.model, &visual.mount, &visual.config);
+        let st = &mut visual.state;
+        st.counters.frames += 1;
+        let keyframe = match step {
+            Ok(s) => s.keyframe,
+            Err(_) => {
+                st.counters.refused += 1;
+                None
+            }
+        };
+        let front = match &keyframe {
+            Some(k) => {
+                st.counters.keyframes += 1;
+                st.counters.unsolved += u32::from(k.relative.is_some() && k.solve.is_err());
+                st.chain(k, &wheel)
+            }
+            None => st.frontend(&wheel),
+        };
+        let step = st
+            .previous
+            .map_or(Se2::IDENTITY, |(_, p)| p.between(&front));
+        if st.previous.is_some() {
+            st.travel.path += libm::hypot(step.x, step.y);
+            st.travel.rotation += libm::fabs(step.theta);
+        }
+        st.previous = Some((stamp, front));
+        let travel = st.travel;
+
+        // GPE (III-C) on the camera's front-end pose, as for a scan.
+        let mirror = &self.st.mirror;
+        let reference = mirror.newest;
+        let anchor = mirror
+            .anchor
+            .filter(|a| reference.is_none_or(|r| r.serial != a.serial));
+        let gpe = GpeFrame {
+            step,
+            frontend: front,
+            travel,
+            reference: reference.map(|n| n.tie),
+            anchor: anchor.map(|n| n.tie),
+            deadline_passed,
+        };
+        let global = self.st.gpe.update(&gpe, &self.cfg.gpe, &self.cfg.noise);
+        let mut out = FrameOutput {
+            stamp,
+            pose: global.pose,
+            frontend: front,
+            reference_serial: self.st.frames.newest_serial(),
+            keyframe: false,
+            predicted: global.predicted,
+            loops: 0,
+            localized: true,
+        };
+        if keyframe.is_some() {
+            if let Some(serial) = self.add_visual_node(stamp, &front, &global.pose, travel) {
+                out.keyframe = true;
+                out.reference_serial = serial;
+            }
+        }
+        Some(out)
+    }
+
+    /// Adds a frame node for the visual keyframe at front-end pose `front`, tied to the newest
+    /// node by the front-end motion between them; its serial, or `None` when no room was made.
+    fn add_visual_node(
+        &mut self,
+        stamp: i64,
+        front: &Se2,
+        global: &Se2,
+        travel: Travel,
+    ) -> Option<u32> {
+        let edge = self.newest_node().map(|prev| {
+            let prev = prev.tie;
+            let cov = self.cfg.noise.over(&travel.since(&prev.travel));
+            NewEdge {
+                from: EdgeFrom::Newest,
+                z: prev.frontend.between(front),
+                information: fixed_info(&cov),
+                kind: EdgeKind::Odometry,
+            }
+        });
+        let meta = NodeMeta {
+            serial: self.st.frames.next_serial(),
+            stamp,
+            frontend: *front,
+            travel,
+            submap: NO_SUBMAP,
+        };
+        let serial = self.join_graph(global, meta, edge)?;
+        self.refresh_mirror();
+        if let Some(v) = self.cameras.as_mut().and_then(|c| c.visual.as_mut()) {
+            v.state.counters.nodes += 1;
+        }
+        Some(serial)
+    }
+
+    /// The visual frame nodes' counters, when the mapper runs the visual odometry.
+    pub fn visual_counters(&self) -> Option<VisualCounters> {
+        let visual = self.cameras.as_ref()?.visual.as_ref()?;
+        Some(visual.state.counters)
+    }
+
+    /// The visual odometry's own counters, when the mapper runs it.
+    pub fn visual_odometry_stats(&self) -> Option<crate::frontend::visual::VoStats> {
+        let visual = self.cameras.as_ref()?.visual.as_ref()?;
+        Some(visual.odometry.stats())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frontend::visual::{KeyframeReason, WindowError};
+
+    fn keyframe(relative: Option<Se2>) -> KeyframeOutput {
+        KeyframeOutput {
+            stamp: 0,
+            reason: KeyframeReason::Motion,
+            relative,
+            pose: Se2::new(100.0, 100.0, 1.0),
+            landmarks_seen: 0,
+            new_landmarks: 0,
+            refound: 0,
+            outliers_dropped: 0,
+            landmarks_dropped: 0,
+            backfilled: 0,
+            merged: 0,
+            short_lived_dropped: 0,
+            solve: Err(WindowError::NoMeasurements),
+        }
+    }
+
+    fn close(a: &Se2, b: &Se2) -> bool {
+        (a.x - b.x).abs() < 1e-12 && (a.y - b.y).abs() < 1e-12 && (a.theta - b.theta).abs() < 1e-12
+    }
+
+    #[test]
+    fn the_front_end_pose_is_the_chain_of_relative_poses_plus_the_wheels_since() {
+        let mut st = VisualState::NEW;
+        // Before any keyframe: the wheels.
+        let w0 = Se2::new(1.0, 2.0, 0.3);
+        assert!(close(&st.frontend(&w0), &w0));
+        // The first keyframe sits at its wheel pose, whatever the odometry's own pose.
+        assert!(close(&st.chain(&keyframe(None), &w0), &w0));
+        // Between keyframes: the wheel motion since the keyframe.
+        let w1 = w0.compose(&Se2::new(0.1, 0.0, 0.05));
+        assert!(close(&st.frontend(&w1), &w1));
+        // The next keyframe: the previous chained pose and the odometry's relative pose, not
+        // the wheels.
+        let rel = Se2::new(0.2, 0.01, 0.02);
+        let w2 = w0.compose(&Se2::new(0.25, 0.0, 0.0));
+        let k2 = st.chain(&keyframe(Some(rel)), &w2);
+        assert!(close(&k2, &w0.compose(&rel)));
+        // And after it, the wheel motion since that keyframe on top of the chain.
+        let step = Se2::new(0.05, 0.0, -0.01);
+        assert!(close(&st.frontend(&w2.compose(&step)), &k2.compose(&step)));
+    }
+
+    #[test]
+    fn a_keyframe_without_a_relative_pose_continues_with_the_wheels() {
+        let mut st = VisualState::NEW;
+        let w0 = Se2::new(0.0, 0.0, 0.0);
+        st.chain(&keyframe(None), &w0);
+        let w1 = Se2::new(0.3, 0.0, 0.1);
+        assert!(close(&st.chain(&keyframe(None), &w1), &w1));
+    }
+}
