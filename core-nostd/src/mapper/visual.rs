@@ -266,6 +266,12 @@ impl Mapper<'_> {
         Some(serial)
     }
 
+    /// The fused wheel+gyro pose at `stamp` (the odometry's frame), if its history covers it:
+    /// the dead reckoning a camera run is compared with.
+    pub fn wheel_pose_at(&self, stamp: i64) -> Option<Se2> {
+        self.odometry.pose_at(stamp).ok()
+    }
+
     /// The visual frame nodes' counters, when the mapper runs the visual odometry.
     pub fn visual_counters(&self) -> Option<VisualCounters> {
         let visual = self.cameras.as_ref()?.visual.as_ref()?;

@@ -20,13 +20,14 @@ use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, bail, Context, Result};
 use cloi_core::frontend::visual::TrackStats;
+use cloi_core::frontend::visual::VoStats;
 use cloi_core::frontend::{BeamGeometry, GridParams};
 use cloi_core::geom::Se2;
 use cloi_core::graph::EdgeKind;
 use cloi_core::mapper::sync::{SyncStats, SYNC_SLOTS, SYNC_WAIT_NS};
 use cloi_core::mapper::{
     BackendStep, BackendWorker, Feeder, FrameOutput, LinkQueues, LocalizeCounters, Mapper,
-    MapperError, MapperStats, ScanInput, ScanSlots, LINK_CAPACITY,
+    MapperError, MapperStats, ScanInput, ScanSlots, VisualCounters, LINK_CAPACITY,
 };
 use cloi_core::sensor::{ImageView, Timestamp};
 use cloi_core::storage::NodeId;
@@ -144,6 +145,9 @@ struct Driver<'s> {
     /// Sensor set C: images are the frames, scans are left out (and counted).
     camera_frames: bool,
     scans_left_out: u64,
+    /// Sensor set C: the fused wheel+gyro pose of every posed image (24 bytes a frame), for
+    /// `odometry.tum`.
+    wheel: Vec<(i64, Se2)>,
 }
 
 /// What the input still owes the mapper: one event, or the scans held at its end.
@@ -201,6 +205,9 @@ impl Driver<'_> {
                     // A posed image is a frame, as a scan is for a LiDAR.
                     self.scan_us.add(t0.elapsed().as_secs_f64() * 1e6);
                     self.accept(mapper, &out, i.t_ns);
+                    if let Some(p) = mapper.wheel_pose_at(out.stamp) {
+                        self.wheel.push((i.t_ns, p));
+                    }
                     self.late = started.elapsed() > self.deadline;
                     after_scan(mapper, i.t_ns);
                 }
@@ -382,6 +389,17 @@ struct Finished {
     localization: Option<(LocalizeCounters, u64)>,
     /// A session extending a saved map: serial of its first frame node once it joined.
     session_first: Option<u32>,
+    /// Sensor set C: the wheel+gyro pose per image, the scans left out, and the visual
+    /// front-end's counters.
+    camera_run: Option<CameraRun>,
+}
+
+/// What a sensor set C run adds to the outputs.
+struct CameraRun {
+    wheel: Vec<(i64, Se2)>,
+    scans_left_out: u64,
+    counters: VisualCounters,
+    odometry: VoStats,
 }
 
 fn drive<'r>(
@@ -415,6 +433,7 @@ fn drive<'r>(
         localized: 0,
         camera_frames: settings.visual.is_some(),
         scans_left_out: 0,
+        wheel: Vec::new(),
     };
     let stats_handle = input.stats_handle();
     let max_scans = settings.max_scans.unwrap_or(u64::MAX);
@@ -613,6 +632,15 @@ fn drive<'r>(
         last_stamp: driver.last_stamp,
         localization: mapper.localize_counters().map(|c| (c, driver.localized)),
         session_first: mapper.session_first_serial(),
+        camera_run: mapper
+            .visual_counters()
+            .zip(mapper.visual_odometry_stats())
+            .map(|(counters, odometry)| CameraRun {
+                wheel: std::mem::take(&mut driver.wheel),
+                scans_left_out: driver.scans_left_out,
+                counters,
+                odometry,
+            }),
     })
 }
 
@@ -760,6 +788,13 @@ fn finish(
     }
     trajectory.commit()?;
     gpe.commit()?;
+    if let Some(c) = &f.camera_run {
+        let mut wheel = TumWriter::create(&out.join("odometry.tum"))?;
+        for (t, p) in &c.wheel {
+            wheel.push(*t, p)?;
+        }
+        wheel.commit()?;
+    }
     picture.write_png(&out.join("map.png"))?;
     match result {
         Some(m) => m.finish()?,
@@ -870,6 +905,33 @@ fn finish(
         report
             .extra
             .insert("cameras".into(), cameras_json(&f.cameras, f.images_refused));
+    }
+    if let Some(c) = &f.camera_run {
+        let n = &c.counters;
+        let o = &c.odometry;
+        report.extra.insert(
+            "visual".into(),
+            json!({
+                "frames": n.frames,
+                "frames_without_odometry": n.no_odometry,
+                "frames_refused_by_vo": n.refused,
+                "keyframes": n.keyframes,
+                "frame_nodes": n.nodes,
+                "unsolved_keyframes": n.unsolved,
+                "landmarks": o.landmarks,
+                "outliers_dropped": o.outliers_dropped,
+                "solve_failures": o.solve_failures,
+                "scans_left_out": c.scans_left_out,
+                "note": "sensor set C: camera 0's visual keyframes are the frame nodes; \
+                         odometry.tum is the fused wheel+gyro pose of every posed image",
+            }),
+        );
+        if c.scans_left_out > 0 {
+            warnings.push(format!(
+                "--sensors C: {} scans of the input were left out",
+                c.scans_left_out
+            ));
+        }
     }
     warnings.extend(sync_warnings(&sync));
     warnings.extend(camera_warnings(&f.cameras, f.images_refused));
