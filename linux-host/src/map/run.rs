@@ -145,9 +145,9 @@ struct Driver<'s> {
     /// Sensor set C: images are the frames, scans are left out (and counted).
     camera_frames: bool,
     scans_left_out: u64,
-    /// Sensor set C: the fused wheel+gyro pose of every posed image (24 bytes a frame), for
-    /// `odometry.tum`.
-    wheel: Vec<(i64, Se2)>,
+    /// Sensor set C: the fused wheel+gyro pose of every posed image, for `odometry.tum`: on
+    /// disk like the frames, each in a record's `frontend` (the other fields unused).
+    wheel: Option<ScanSpool>,
 }
 
 /// What the input still owes the mapper: one event, or the scans held at its end.
@@ -205,9 +205,7 @@ impl Driver<'_> {
                     // A posed image is a frame, as a scan is for a LiDAR.
                     self.scan_us.add(t0.elapsed().as_secs_f64() * 1e6);
                     self.accept(mapper, &out, i.t_ns);
-                    if let Some(p) = mapper.wheel_pose_at(out.stamp) {
-                        self.wheel.push((i.t_ns, p));
-                    }
+                    self.wheel_pose(mapper, i.t_ns);
                     self.late = started.elapsed() > self.deadline;
                     after_scan(mapper, i.t_ns);
                 }
@@ -281,6 +279,24 @@ impl Driver<'_> {
                 None
             }
             Err(_) => None,
+        }
+    }
+
+    /// Records the fused wheel+gyro pose of the image stamped `stamp` (sensor set C).
+    fn wheel_pose(&mut self, mapper: &Mapper<'_>, stamp: i64) {
+        let (Some(spool), Some(pose)) = (&mut self.wheel, mapper.wheel_pose_at(stamp)) else {
+            return;
+        };
+        let record = ScanRecord {
+            stamp,
+            reference: 0,
+            reference_frontend: Se2::IDENTITY,
+            rel: Se2::IDENTITY,
+            gpe: pose,
+            frontend: pose,
+        };
+        if let Err(e) = spool.push(&record) {
+            self.spool_error.get_or_insert(e);
         }
     }
 
@@ -396,7 +412,7 @@ struct Finished {
 
 /// What a sensor set C run adds to the outputs.
 struct CameraRun {
-    wheel: Vec<(i64, Se2)>,
+    wheel: Option<ScanSpool>,
     scans_left_out: u64,
     counters: VisualCounters,
     odometry: VoStats,
@@ -433,7 +449,10 @@ fn drive<'r>(
         localized: 0,
         camera_frames: settings.visual.is_some(),
         scans_left_out: 0,
-        wheel: Vec::new(),
+        wheel: match settings.visual {
+            Some(_) => Some(ScanSpool::new()?),
+            None => None,
+        },
     };
     let stats_handle = input.stats_handle();
     let max_scans = settings.max_scans.unwrap_or(u64::MAX);
@@ -636,7 +655,7 @@ fn drive<'r>(
             .visual_counters()
             .zip(mapper.visual_odometry_stats())
             .map(|(counters, odometry)| CameraRun {
-                wheel: std::mem::take(&mut driver.wheel),
+                wheel: driver.wheel.take(),
                 scans_left_out: driver.scans_left_out,
                 counters,
                 odometry,
@@ -672,7 +691,7 @@ fn unknown_views<'a>(
 }
 
 fn finish(
-    f: Finished,
+    mut f: Finished,
     settings: &MapSettings,
     wall_seconds: f64,
     input_stats: &InputStats,
@@ -788,10 +807,11 @@ fn finish(
     }
     trajectory.commit()?;
     gpe.commit()?;
-    if let Some(c) = &f.camera_run {
+    if let Some(spool) = f.camera_run.as_mut().and_then(|c| c.wheel.take()) {
         let mut wheel = TumWriter::create(&out.join("odometry.tum"))?;
-        for (t, p) in &c.wheel {
-            wheel.push(*t, p)?;
+        for r in spool.into_records()? {
+            let r = r?;
+            wheel.push(r.stamp, &r.frontend)?;
         }
         wheel.commit()?;
     }
