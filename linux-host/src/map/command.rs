@@ -234,8 +234,14 @@ pub(crate) fn execute_input(
 
 /// One human line about a finished run, from its report.
 fn summary(r: &MapReport, out: &std::path::Path) -> String {
+    // Sensor set C maps camera images, each a frame as a scan is for a LiDAR.
+    let frames = if r.extra.contains_key("visual") {
+        "camera frames"
+    } else {
+        "scans"
+    };
     format!(
-        "mapped {} scans ({} rejected) into {} keyframes with {} loop closures: {:.0} s of data \
+        "mapped {} {frames} ({} rejected) into {} keyframes with {} loop closures: {:.0} s of data \
          in {:.1} s; wrote map.pgm, map.yaml, map.png, result.mcap, trajectory.tum, gpe.tum, \
          graph.g2o, report.json to {}",
         r.scans,
