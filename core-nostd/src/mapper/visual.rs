@@ -334,6 +334,120 @@ mod tests {
         assert!(close(&st.frontend(&w2.compose(&step)), &k2.compose(&step)));
     }
 
+    extern crate std;
+    use std::boxed::Box;
+    use std::vec;
+    use std::vec::Vec;
+
+    use super::super::{CameraParts, MapperConfig};
+    use crate::frontend::visual::frame::{scratch_bytes, MAX_FEATURES};
+    use crate::frontend::visual::synth::{cleaner_camera, Rng};
+    use crate::frontend::visual::{CameraTrack, Keypoint, Match};
+    use crate::graph::EdgeKind;
+    use crate::profile::MapperResources;
+    use crate::sensor::{ImageView, PixelFormat, Timestamp};
+
+    const W: usize = 320;
+    const H: usize = 240;
+
+    /// A texture of 8-pixel blocks of random grey, `shift` pixels to the left: enough corners
+    /// for the tracker, moving in the image as the wheels move the robot.
+    fn blocks(seed: u64, shift: usize) -> Vec<u8> {
+        let mut rng = Rng::new(seed);
+        let cols = (W + 8 * 64) / 8;
+        let grey: Vec<u8> = (0..cols * (H / 8 + 1))
+            .map(|_| (rng.next_u64() % 256) as u8)
+            .collect();
+        let mut img = vec![0u8; W * H];
+        for (i, px) in img.iter_mut().enumerate() {
+            let (x, y) = (i % W + shift, i / W);
+            *px = grey[(y / 8) * cols + x / 8];
+        }
+        img
+    }
+
+    /// A mapper with camera storage and the visual odometry fed a still then moving robot:
+    /// every image is posed, each visual keyframe is a frame node, and the odometry edge
+    /// between two nodes is the difference of their front-end poses.
+    #[test]
+    fn visual_keyframes_become_frame_nodes_tied_by_odometry_edges() {
+        std::thread::Builder::new()
+            .stack_size(256 << 20)
+            .spawn(|| {
+                type Res = MapperResources<512, 1536, 12, { 82 * 82 }, 8192>;
+                let mut res: Box<Res> = Box::default();
+                let mut tracks = vec![CameraTrack::new()];
+                let mut bytes = vec![0u8; scratch_bytes(W, H)];
+                let mut corners = vec![Keypoint::default(); MAX_FEATURES];
+                let mut matches = vec![Match::default(); MAX_FEATURES];
+                let mut odometry = Box::new(CameraOdometry::new());
+                let (model, mount) = cleaner_camera();
+                let mut parts = res.parts();
+                parts.cameras = Some(CameraParts {
+                    tracks: &mut tracks,
+                    bytes: &mut bytes,
+                    corners: &mut corners,
+                    matches: &mut matches,
+                    visual: Some(VisualParts {
+                        odometry: &mut odometry,
+                        model,
+                        mount,
+                        config: VoConfig::default(),
+                        state: VisualState::NEW,
+                    }),
+                });
+                let mut m = parts.start(MapperConfig::home()).expect("resources fit");
+                let mut keyframes = 0;
+                let mut posed = 0;
+                for k in 0..400i64 {
+                    // 50 Hz wheels: still for 2 s, then 0.2 m/s forward.
+                    let t = k * 20_000_000;
+                    let x = 0.2 * ((k - 100).max(0) as f64) * 0.02;
+                    m.push_odometry(t, Se2::new(x, 0.0, 0.0)).expect("odometry");
+                    if k % 5 != 4 {
+                        continue;
+                    }
+                    // The image 10 ms before the newest wheel sample: covered.
+                    let stamp = t - 10_000_000;
+                    let img = blocks(7, (x * 100.0) as usize);
+                    let view = ImageView::new_checked(
+                        Timestamp::from_nanos(stamp),
+                        W,
+                        H,
+                        W,
+                        PixelFormat::Mono8,
+                        &img,
+                    )
+                    .expect("a valid frame");
+                    let out = m.push_image(0, stamp, &view, false).expect("image taken");
+                    let frame = out.frame.expect("a pose for every image");
+                    assert!(frame.pose.is_finite() && frame.frontend.is_finite());
+                    posed += 1;
+                    keyframes += usize::from(frame.keyframe);
+                }
+                let counters = m.visual_counters().expect("visual odometry");
+                assert_eq!(posed, 80);
+                assert_eq!(counters.frames, 80);
+                assert!(keyframes >= 3, "{counters:?}");
+                assert_eq!(counters.nodes as usize, keyframes);
+                assert_eq!(m.graph().node_count(), keyframes);
+                let odometry_edges: Vec<_> = (m.graph().edges().iter())
+                    .filter(|e| e.kind == EdgeKind::Odometry)
+                    .collect();
+                assert_eq!(odometry_edges.len(), keyframes - 1);
+                for e in odometry_edges {
+                    let (a, b) = (e.from.0 as usize, e.to.0 as usize);
+                    let z = m.nodes()[a].frontend.between(&m.nodes()[b].frontend);
+                    assert!(close(&z, &e.measurement), "{z:?} {:?}", e.measurement);
+                }
+                // A still robot makes no keyframe after the first.
+                assert!(m.nodes()[1].stamp >= 2_000_000_000);
+            })
+            .expect("thread")
+            .join()
+            .expect("test body");
+    }
+
     #[test]
     fn a_keyframe_without_a_relative_pose_continues_with_the_wheels() {
         let mut st = VisualState::NEW;

@@ -59,7 +59,7 @@ pub use window::{
 };
 
 #[cfg(test)]
-mod synth;
+pub(crate) mod synth;
 
 #[cfg(test)]
 mod tests {
