@@ -33,7 +33,11 @@
 //! closure is not implemented yet.
 //!
 //! Memory: the odometry's storage comes with the camera stage's ([`VisualParts`]), lent by
-//! the caller; a mapper without it only tracks images, as before.
+//! the caller; a mapper without it only tracks images, as before. [`CameraOdometry`] takes
+//! about 1.05 MB (a window of [`VO_KEYFRAMES`] keyframes, [`VO_LANDMARKS`] landmarks and
+//! [`VO_OBSERVATIONS`] sightings), the same in every profile: it is bounded by what the camera
+//! sees at once, not by the area mapped. The profiles' static resources (the LiDAR firmware's)
+//! lend no camera storage, so `cloi-budget` does not count it yet.
 
 use super::back::{EdgeFrom, NewEdge};
 use super::frames::{fixed_info, NodeMeta};
@@ -446,6 +450,15 @@ mod tests {
             .expect("thread")
             .join()
             .expect("test body");
+    }
+
+    /// The odometry's storage, what sensor set C adds to the camera stage's.
+    #[test]
+    fn the_camera_odometry_size() {
+        let bytes = size_of::<CameraOdometry>();
+        std::println!("CameraOdometry: {bytes} bytes");
+        // 1,053,216 bytes on x86-64: the module docs quote it.
+        assert!((1_000_000..=1_100_000).contains(&bytes), "{bytes} bytes");
     }
 
     #[test]
