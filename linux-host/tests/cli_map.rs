@@ -516,7 +516,7 @@ fn a_full_disk_is_a_clear_error_and_keeps_the_previous_outputs() {
 /// A bag with a camera (the simulator's sensor set C+L) is mapped with its images tracked:
 /// every image reaches the camera stage, a textured home ceiling gives the features and
 /// frame-to-frame matches the visual odometry needs, and the LiDAR map is the same as with
-/// the images left out (camera frames do not join the graph yet).
+/// the images left out (with a LiDAR, camera frames do not join the graph yet).
 #[test]
 fn a_bag_with_a_camera_has_its_images_tracked_and_the_lidar_map_unchanged() {
     let tmp = tempfile::tempdir().expect("tempdir");
@@ -580,6 +580,77 @@ fn a_bag_with_a_camera_has_its_images_tracked_and_the_lidar_map_unchanged() {
         let b = std::fs::read(without.join(f)).expect("output");
         assert!(a == b, "{f} differs with the images");
     }
+}
+
+/// A camera-only bag (`--sensors C`) is mapped from its images with the calibration of the
+/// simulator's sidecar: every image a frame of `trajectory.tum`, the dead reckoning beside it
+/// in `odometry.tum`, the scans of a bag that has them left out; without a calibration, and
+/// for two cameras, the run is refused with the reason.
+#[test]
+fn a_camera_only_bag_maps_from_its_images_and_needs_a_calibration() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let bag = tmp.path().join("c.mcap");
+    let bag_path = bag.to_str().expect("utf-8");
+    let sim = cloi(&[
+        "sim",
+        "--world",
+        "home",
+        "--duration",
+        "8",
+        "--sensors",
+        "C",
+        "--seed",
+        "5",
+        "--out",
+        bag_path,
+    ]);
+    assert!(
+        sim.status.success(),
+        "{}",
+        String::from_utf8_lossy(&sim.stderr)
+    );
+    let out = tmp.path().join("out");
+    let out_path = out.to_str().expect("utf-8");
+    let run = |extra: &[&str]| {
+        let mut args = vec![
+            "map",
+            bag_path,
+            "--deterministic",
+            "--quiet",
+            "--out",
+            out_path,
+        ];
+        args.extend_from_slice(extra);
+        cloi(&args)
+    };
+    let ok = run(&["--sensors", "C"]);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    let lines = |f: &str| {
+        std::fs::read_to_string(out.join(f))
+            .expect("output")
+            .lines()
+            .filter(|l| !l.starts_with('#'))
+            .count()
+    };
+    let visual = &report(&out)["visual"];
+    let frames = visual["frames"].as_u64().expect("frames") as usize;
+    assert!(frames >= 70, "{visual:#}");
+    assert_eq!(lines("trajectory.tum"), frames);
+    assert_eq!(lines("gpe.tum"), frames);
+    assert_eq!(lines("odometry.tum"), frames);
+    assert!(visual["frame_nodes"].as_u64() >= Some(2), "{visual:#}");
+    let two = run(&["--sensors", "2C"]);
+    assert!(!two.status.success());
+    assert!(String::from_utf8_lossy(&two.stderr).contains("2C"));
+    std::fs::remove_file(tmp.path().join("c.sim.json")).expect("the sidecar");
+    let bare = run(&["--sensors", "C"]);
+    assert!(!bare.status.success());
+    let why = String::from_utf8_lossy(&bare.stderr);
+    assert!(why.contains("--camera-calibration"), "{why}");
 }
 
 /// Maps 40 s of the simulated home into `dir`, saving the map to `file`.
