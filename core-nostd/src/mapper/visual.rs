@@ -9,13 +9,16 @@
 //!
 //! # The camera's front-end pose
 //! The LiDAR front-end gives a drifting but locally exact pose per scan; here that role is
-//! played by the chain of the odometry's keyframe-to-keyframe poses: the first keyframe sits at
-//! its wheel+gyro pose, each later one at the previous one composed with the odometry's
-//! relative pose ([`KeyframeOutput::relative`]). Between keyframes, the wheel+gyro motion since
-//! the newest keyframe is composed onto it. The chain, not the odometry's own latest estimate
-//! of each keyframe, is what the nodes remember: the window keeps refining older keyframes
-//! after their node was made, and the odometry edge between two nodes must be exactly the
-//! difference of their front-end poses, as it is for LiDAR keyframes.
+//! played by the odometry's own estimate of each keyframe when it is made
+//! ([`KeyframeOutput::pose`], in the frame of the first keyframe's wheel+gyro pose, so the
+//! odometry's frame). Between keyframes, the wheel+gyro motion since the newest keyframe is
+//! composed onto it. The odometry edge between two nodes is the difference of their front-end
+//! poses, as for LiDAR keyframes. Chaining only the odometry's keyframe-to-keyframe poses
+//! ([`KeyframeOutput::relative`]) instead would drop what each solve corrects in the previous
+//! keyframes of its window: the node of keyframe `k - 1` was made before solve `k` moved it.
+//! Keeping the odometry's poses carries that correction into the next edge, and on the
+//! simulated home (120 s, seeds 1 to 8, not the seeds the benchmarks report) it gave a mean ATE
+//! of 0.154 m against 0.204 m for the chain and 0.219 m for the wheel+gyro dead reckoning.
 //!
 //! # Per image
 //! 1. the odometry takes the tracked features (refused frames are counted, the image still
@@ -98,7 +101,7 @@ pub struct VisualCounters {
 /// The visual front-end's small state.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct VisualState {
-    /// Newest keyframe: its front-end pose (the chain) and its wheel+gyro pose.
+    /// Newest keyframe: its front-end pose and its wheel+gyro pose.
     keyframe: Option<(Se2, Se2)>,
     /// Previous image: stamp and front-end pose.
     previous: Option<(i64, Se2)>,
@@ -128,7 +131,7 @@ impl VisualState {
     }
 
     /// The front-end pose of a frame whose wheel+gyro pose is `wheel`: the newest keyframe's
-    /// chained pose with the wheel motion since it, or the wheel pose before any keyframe.
+    /// front-end pose with the wheel motion since it, or the wheel pose before any keyframe.
     fn frontend(&self, wheel: &Se2) -> Se2 {
         match self.keyframe {
             Some((front, at)) => front.compose(&at.between(wheel)),
@@ -136,12 +139,13 @@ impl VisualState {
         }
     }
 
-    /// Takes the front-end pose of keyframe `k` into the chain and gives it.
-    fn chain(&mut self, k: &KeyframeOutput, wheel: &Se2) -> Se2 {
-        let front = match (self.keyframe, k.relative) {
-            (Some((front, _)), Some(rel)) => front.compose(&rel),
-            // The first keyframe, or one the odometry could not relate: the wheels.
-            _ => self.frontend(wheel),
+    /// Takes keyframe `k`, made at wheel+gyro pose `wheel`, as the newest and gives its
+    /// front-end pose: the odometry's estimate of it (the wheels' guess if that is not finite).
+    fn keyframe(&mut self, k: &KeyframeOutput, wheel: &Se2) -> Se2 {
+        let front = if k.pose.is_finite() {
+            k.pose
+        } else {
+            self.frontend(wheel)
         };
         self.keyframe = Some((front, *wheel));
         front
@@ -188,7 +192,7 @@ impl Mapper<'_> {
             Some(k) => {
                 st.counters.keyframes += 1;
                 st.counters.unsolved += u32::from(k.relative.is_some() && k.solve.is_err());
-                st.chain(k, &wheel)
+                st.keyframe(k, &wheel)
             }
             None => st.frontend(&wheel),
         };
@@ -294,12 +298,12 @@ mod tests {
     use super::*;
     use crate::frontend::visual::{KeyframeReason, WindowError};
 
-    fn keyframe(relative: Option<Se2>) -> KeyframeOutput {
+    fn keyframe(pose: Se2) -> KeyframeOutput {
         KeyframeOutput {
             stamp: 0,
             reason: KeyframeReason::Motion,
-            relative,
-            pose: Se2::new(100.0, 100.0, 1.0),
+            relative: None,
+            pose,
             landmarks_seen: 0,
             new_landmarks: 0,
             refound: 0,
@@ -317,25 +321,32 @@ mod tests {
     }
 
     #[test]
-    fn the_front_end_pose_is_the_chain_of_relative_poses_plus_the_wheels_since() {
+    fn the_front_end_pose_is_the_odometrys_keyframe_pose_plus_the_wheels_since() {
         let mut st = VisualState::NEW;
         // Before any keyframe: the wheels.
         let w0 = Se2::new(1.0, 2.0, 0.3);
         assert!(close(&st.frontend(&w0), &w0));
-        // The first keyframe sits at its wheel pose, whatever the odometry's own pose.
-        assert!(close(&st.chain(&keyframe(None), &w0), &w0));
-        // Between keyframes: the wheel motion since the keyframe.
-        let w1 = w0.compose(&Se2::new(0.1, 0.0, 0.05));
-        assert!(close(&st.frontend(&w1), &w1));
-        // The next keyframe: the previous chained pose and the odometry's relative pose, not
-        // the wheels.
-        let rel = Se2::new(0.2, 0.01, 0.02);
-        let w2 = w0.compose(&Se2::new(0.25, 0.0, 0.0));
-        let k2 = st.chain(&keyframe(Some(rel)), &w2);
-        assert!(close(&k2, &w0.compose(&rel)));
-        // And after it, the wheel motion since that keyframe on top of the chain.
-        let step = Se2::new(0.05, 0.0, -0.01);
-        assert!(close(&st.frontend(&w2.compose(&step)), &k2.compose(&step)));
+        // A keyframe sits at the odometry's estimate of it.
+        let k0 = Se2::new(1.01, 2.0, 0.29);
+        assert!(close(&st.keyframe(&keyframe(k0), &w0), &k0));
+        // Between keyframes: the wheel motion since the keyframe on top of it.
+        let step = Se2::new(0.1, 0.0, 0.05);
+        assert!(close(&st.frontend(&w0.compose(&step)), &k0.compose(&step)));
+        // The next keyframe replaces it.
+        let k1 = Se2::new(1.3, 2.1, 0.35);
+        let w1 = w0.compose(&Se2::new(0.25, 0.0, 0.0));
+        assert!(close(&st.keyframe(&keyframe(k1), &w1), &k1));
+        assert!(close(&st.frontend(&w1.compose(&step)), &k1.compose(&step)));
+    }
+
+    #[test]
+    fn a_keyframe_pose_that_is_not_finite_is_replaced_by_the_wheels() {
+        let mut st = VisualState::NEW;
+        let w0 = Se2::new(0.0, 0.0, 0.0);
+        st.keyframe(&keyframe(w0), &w0);
+        let w1 = Se2::new(0.3, 0.0, 0.1);
+        let bad = Se2::new(f64::NAN, 0.0, 0.0);
+        assert!(close(&st.keyframe(&keyframe(bad), &w1), &w1));
     }
 
     extern crate std;
@@ -459,14 +470,5 @@ mod tests {
         std::println!("CameraOdometry: {bytes} bytes");
         // 1,053,216 bytes on x86-64: the module docs quote it.
         assert!((1_000_000..=1_100_000).contains(&bytes), "{bytes} bytes");
-    }
-
-    #[test]
-    fn a_keyframe_without_a_relative_pose_continues_with_the_wheels() {
-        let mut st = VisualState::NEW;
-        let w0 = Se2::new(0.0, 0.0, 0.0);
-        st.chain(&keyframe(None), &w0);
-        let w1 = Se2::new(0.3, 0.0, 0.1);
-        assert!(close(&st.chain(&keyframe(None), &w1), &w1));
     }
 }
