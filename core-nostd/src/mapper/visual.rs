@@ -25,9 +25,11 @@
 //!    gets a pose from the wheels);
 //! 2. the front-end pose as above, and the travel (path length and heading change) since the
 //!    last image;
-//! 3. the GPE (III-C, eqs. 5-7) on that pose, as for a scan;
+//! 3. the GPE (III-C: eq. 5, or the worst-case prediction of eqs. 6-7) on that pose, as for
+//!    a scan;
 //! 4. a keyframe of the odometry becomes a frame node at the GPE's pose, tied to the newest
-//!    node by an odometry edge whose measurement is the odometry's relative pose. The odometry
+//!    node by an odometry edge whose measurement is the motion between the two keyframes as
+//!    the odometry estimated them (the difference of their front-end poses). The odometry
 //!    reports no covariance (its window does not expose its reduced system), so the edge's
 //!    information is the front-end motion model's over the travel between the two nodes, the
 //!    one LiDAR keyframes use.
