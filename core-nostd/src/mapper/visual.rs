@@ -38,7 +38,7 @@
 //!
 //! Memory: the odometry's storage comes with the camera stage's ([`VisualParts`]), lent by
 //! the caller; a mapper without it only tracks images, as before. [`CameraOdometry`] takes
-//! about 1.05 MB (a window of [`VO_KEYFRAMES`] keyframes, [`VO_LANDMARKS`] landmarks and
+//! at most 1.1 MB (1.05 MB on x86-64, 0.97 MB on 32-bit ARM; a window of [`VO_KEYFRAMES`] keyframes, [`VO_LANDMARKS`] landmarks and
 //! [`VO_OBSERVATIONS`] sightings), the same in every profile: it is bounded by what the camera
 //! sees at once, not by the area mapped. The profiles' static resources (the LiDAR firmware's)
 //! lend no camera storage, so `cloi-budget` does not count it yet.
@@ -469,7 +469,8 @@ mod tests {
     fn the_camera_odometry_size() {
         let bytes = size_of::<CameraOdometry>();
         std::println!("CameraOdometry: {bytes} bytes");
-        // 1,053,216 bytes on x86-64: the module docs quote it.
-        assert!((1_000_000..=1_100_000).contains(&bytes), "{bytes} bytes");
+        // 1,053,216 bytes on x86-64 and 965,256 on 32-bit ARM (half-size `usize`): the module
+        // docs quote the bound.
+        assert!(bytes <= 1_100_000, "{bytes} bytes");
     }
 }
