@@ -7,9 +7,8 @@ A prototype of a back-end test, measured against ground truth.
 RUN_DIR is one world's directory of a `bench/generalize.sh` run (map/graph.g2o,
 map/trajectory.tum, sim.gt.tum). Needs numpy and scipy (`pip install numpy scipy`).
 
-The loop edges of the final graph are grouped into clusters, one per revisit (edges sorted by
-keyframe; an edge joins the previous one's cluster when its keyframe is at most 10 keyframes and
-its anchor at most 50 keyframes from that edge's). The test is a likelihood ratio, as in RRR
+The loop edges of the final graph are grouped into clusters, one per revisit of one place: the
+edges to one anchor whose keyframes follow each other by at most 10 keyframes. The test is a likelihood ratio, as in RRR
 (Latif, Cadena and Neira, 2013): with the odometry and a set of clusters solved by least squares
 (Gauss-Newton here, from the final poses), removing a right cluster lowers the optimal total
 cost by about its own degrees of freedom (3 per edge), since its edges agree with the rest;
@@ -180,15 +179,17 @@ def ate(poses):
     return float(np.sqrt((((p @ R.T) - g) ** 2).sum(1).mean()))
 
 
-# Clusters: one revisit, loop edges sorted by keyframe whose keyframes are at most 10 apart and
-# whose anchors at most 50 apart from the cluster's previous edge.
+# Clusters: one revisit of one place, the loop edges to one anchor whose keyframes follow each
+# other by at most 10 (the edges sorted by keyframe).
 loops.sort(key=lambda e: (e[1], e[0]))
 clusters = []
+open_by_anchor = {}
 for e in loops:
-    c = clusters[-1] if clusters else None
-    if c and e[1] - c[-1][1] <= 10 and abs(e[0] - c[-1][0]) <= 50:
-        c.append(e)
+    k = open_by_anchor.get(e[0])
+    if k is not None and e[1] - clusters[k][-1][1] <= 10:
+        clusters[k].append(e)
     else:
+        open_by_anchor[e[0]] = len(clusters)
         clusters.append([e])
 
 x_final = verts
