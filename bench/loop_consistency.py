@@ -28,75 +28,35 @@ exceeds the two components' crossing), over every loop edge and over the kept on
 clusters dropped (edges, wrong edges: claims more than 0.3 m off ground truth, as `cloi eval
 loops` counts them), and the wrong edges kept and right edges dropped.
 """
-import bisect, json, math, sys, time
+import json, math, sys, time
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.stats import chi2 as chi2_dist
 
+from truth import Truth, wrap
+
 if len(sys.argv) != 2:
     sys.exit(__doc__)
 d = sys.argv[1]
 
-
-def load_tum(p):
-    out = []
-    for line in open(p):
-        if line.startswith('#') or not line.strip():
-            continue
-        t, x, y, _, _, _, qz, qw = map(float, line.split()[:8])
-        out.append((t, x, y, 2 * math.atan2(qz, qw)))
-    return out
-
-
-traj = load_tum(d + '/map/trajectory.tum')
-gt = load_tum(d + '/sim.gt.tum')
-gts = [g[0] for g in gt]
-
-
-def wrap(a):
-    return math.atan2(math.sin(a), math.cos(a))
-
-
-def gt_at(t):
-    i = bisect.bisect_left(gts, t)
-    if i <= 0:
-        return gt[0][1:]
-    if i >= len(gt):
-        return gt[-1][1:]
-    a, b = gt[i - 1], gt[i]
-    f = (t - a[0]) / (b[0] - a[0]) if b[0] > a[0] else 0
-    return (a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]), a[3] + f * wrap(b[3] - a[3]))
-
-
-key = {(round(x, 4), round(y, 4), round(th, 3)): t for t, x, y, th in traj}
-verts, odo, loops = {}, [], []
+truth = Truth(d)
+verts, vt = truth.vertices, truth.vertex_stamp
+odo, loops = [], []
 for line in open(d + '/map/graph.g2o'):
     f = line.split()
-    if f[0] == 'VERTEX_SE2':
-        verts[int(f[1])] = tuple(map(float, f[2:5]))
-    elif f[0] == 'EDGE_SE2':
+    if f and f[0] == 'EDGE_SE2':
         i, j = int(f[1]), int(f[2])
         I = list(map(float, f[6:12]))
         M = np.array([[I[0], I[1], I[2]], [I[1], I[3], I[4]], [I[2], I[4], I[5]]])
         e = (i, j, np.array(list(map(float, f[3:6]))), M)
         (odo if abs(i - j) == 1 else loops).append(e)
-vt = {i: key.get((round(x, 4), round(y, 4), round(th, 3))) for i, (x, y, th) in verts.items()}
-vt = {i: t for i, t in vt.items() if t is not None}
-
-
-def between(a, b):
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    c, s = math.cos(a[2]), math.sin(a[2])
-    return (c * dx + s * dy, -s * dx + c * dy, wrap(b[2] - a[2]))
 
 
 def is_wrong(e):
     i, j, z, _ = e
-    if i not in vt or j not in vt:
-        return None
-    g = between(gt_at(vt[i]), gt_at(vt[j]))
-    return math.hypot(g[0] - z[0], g[1] - z[1]) > 0.3
+    err = truth.claim_error(i, j, z)
+    return None if err is None else err > 0.3
 
 
 ids = sorted(verts)
@@ -166,17 +126,6 @@ def chi2(x, e):
     i, j, z, M = e
     r, _, _ = residual(x[i], x[j], z)
     return float(r @ M @ r)
-
-
-def ate(poses):
-    ks = [i for i in poses if i in vt]
-    P = np.array([poses[i][:2] for i in ks])
-    G = np.array([gt_at(vt[i])[:2] for i in ks])
-    mp, mg = P.mean(0), G.mean(0)
-    p, g = P - mp, G - mg
-    a = math.atan2((p[:, 0] * g[:, 1] - p[:, 1] * g[:, 0]).sum(), (p * g).sum())
-    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    return float(np.sqrt((((p @ R.T) - g) ** 2).sum(1).mean()))
 
 
 # Clusters: one revisit of one place, the loop edges to one anchor whose keyframes follow each
@@ -252,6 +201,6 @@ print(json.dumps({
     'wrong': sum(1 for e in loops if is_wrong(e)), 'dropped_clusters': len(dropped),
     'wrong_kept': sum(1 for e in kept_edges if is_wrong(e)),
     'right_dropped': sum(1 for e in dropped_edges if is_wrong(e) is False),
-    'ate_final': round(ate(x_final), 3), 'ate_all_least_squares': round(ate(x_all), 3),
-    'ate_consistent': round(ate(x), 3), 'ate_all_max_mixture': round(ate(x_mm_all), 3),
-    'ate_consistent_max_mixture': round(ate(x_mm), 3), 'seconds': round(time.time() - t0)}))
+    'ate_final': round(truth.ate(x_final), 3), 'ate_all_least_squares': round(truth.ate(x_all), 3),
+    'ate_consistent': round(truth.ate(x), 3), 'ate_all_max_mixture': round(truth.ate(x_mm_all), 3),
+    'ate_consistent_max_mixture': round(truth.ate(x_mm), 3), 'seconds': round(time.time() - t0)}))
