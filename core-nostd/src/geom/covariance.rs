@@ -108,6 +108,14 @@ fn leading_minors(m: &Matrix3<f64>) -> (f64, f64, f64) {
     (a, m2, m3)
 }
 
+/// The quantile of a chi2 with `dof` degrees of freedom at the standard normal's point `z`
+/// (1.645 for 95 %, 3.090 for 99.9 %), by the Wilson-Hilferty cube approximation.
+pub fn chi2_quantile(dof: f64, z: f64) -> f64 {
+    let a = 2.0 / (9.0 * dof);
+    let c = 1.0 - a + z * libm::sqrt(a);
+    dof * c * c * c
+}
+
 /// Inverse of a symmetric positive-definite 3x3 matrix (closed form: adjugate over
 /// determinant, after Sylvester's test); `None` when it is not positive definite or not finite.
 /// Only the upper triangle is read.

@@ -468,6 +468,22 @@ impl<'a> PoseGraph<'a> {
         self.edge_count = kept;
         Ok(())
     }
+
+    /// Removes the edges for which `keep(index, edge)` is false, keeping the order of the
+    /// others; returns how many were removed. Nodes are untouched.
+    pub fn retain_edges(&mut self, mut keep: impl FnMut(usize, &PoseEdge) -> bool) -> usize {
+        let m = self.edge_count;
+        let mut kept = 0usize;
+        for k in 0..m {
+            let e = self.edges[k];
+            if keep(k, &e) {
+                self.edges[kept] = e;
+                kept += 1;
+            }
+        }
+        self.edge_count = kept;
+        m - kept
+    }
 }
 
 #[cfg(test)]

@@ -31,6 +31,7 @@ pub(super) fn linear_step(
 ) -> Result<(f64, f64, f64), SolveError> {
     let vars = ws.key.vars;
     let nnz = ws.key.nnz;
+    ws.key.factored = false;
     let (cost, chi2) = linearize::assemble(
         nodes,
         edges,
@@ -65,6 +66,8 @@ pub(super) fn linear_step(
         let node = ws.var_node.get(col).copied().unwrap_or(0);
         return Err(SolveError::NotPositiveDefinite(NodeId(node)));
     }
+    // Undamped and over every unknown, the factor is that of the information matrix itself.
+    ws.key.factored = lambda == 0.0 && stage == linearize::Stage::Full;
     cholesky::solve_in_place(vars, ws.col_end, ws.rows, ws.values, ws.diag, ws.rhs);
     Ok((cost, chi2, lambda))
 }
@@ -213,9 +216,7 @@ pub(super) fn passes_chi2_test(
     );
     // 99.9 % point of the standard normal.
     const Z: f64 = 3.090_232;
-    let h = 2.0 / (9.0 * dof);
-    let q = 1.0 - h + Z * libm::sqrt(h);
-    chi2.is_finite() && chi2 <= dof * q * q * q
+    chi2.is_finite() && chi2 <= crate::geom::chi2_quantile(dof, Z)
 }
 
 /// Most Levenberg-Marquardt iterations of the fallback of [`Method::Auto`], as a multiple of

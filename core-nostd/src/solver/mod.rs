@@ -41,12 +41,13 @@
 //! Modules: `options` (what a solve is asked and what it reports), `iterate` (the
 //! Gauss-Newton and Levenberg-Marquardt iterations and their linear step), `resumable` (the
 //! same Gauss-Newton solve in bounded chunks of work, for the back-end's steps), `ordering`,
-//! `cholesky`, `linearize`, `gate`, `marginals` and `workspace`.
+//! `cholesky`, `linearize`, `gate`, `marginals`, `leave_out` and `workspace`.
 
 mod admission;
 mod cholesky;
 mod gate;
 mod iterate;
+mod leave_out;
 mod linearize;
 mod marginals;
 mod options;
@@ -55,6 +56,9 @@ mod resumable;
 mod workspace;
 
 pub(crate) use cholesky::chol_inverse_above;
+pub use leave_out::{
+    factor_usable, factorize_at_estimate, leave_out_gain, LeaveOut, DENSE_SCRATCH, MAX_GROUP,
+};
 pub use marginals::marginal_information_traces;
 pub use options::{Method, SolveError, SolveFailure, SolveReport, SolverOptions, AUTO_LM_TAU};
 pub use resumable::{work, ChunkedSolve, Progress};
@@ -418,6 +422,7 @@ pub(super) fn analysis_done(
     ws.key.edges = edges;
     ws.key.fingerprint = fp;
     ws.key.valid = true;
+    ws.key.factored = false;
     report.analyzed = true;
     report.variables = ws.key.vars;
     report.factor_blocks = ws.key.nnz;

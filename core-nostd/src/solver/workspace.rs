@@ -36,6 +36,9 @@ pub struct AnalysisKey {
     pub(crate) vars: usize,
     /// Off-diagonal blocks of the factor.
     pub(crate) nnz: usize,
+    /// The factor's storage holds the Cholesky factor of the last assembled system (of this
+    /// analysis, with the edges' current active flags).
+    pub(crate) factored: bool,
 }
 
 /// Workspace for graphs of up to `NODES` nodes and `EDGES` edges whose Cholesky factor has at
@@ -82,6 +85,7 @@ impl<const NODES: usize, const EDGES: usize, const FACTOR: usize>
                 valid: false,
                 vars: 0,
                 nnz: 0,
+                factored: false,
             },
             node_var: [0; NODES],
             var_node: [0; NODES],

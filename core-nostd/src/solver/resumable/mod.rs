@@ -452,6 +452,7 @@ impl ChunkedSolve {
                         *spent = spent.saturating_add(touched);
                         self.cursor = next;
                         if next == vars {
+                            ws.key.factored = true;
                             self.cursor = 0;
                             self.phase = Phase::GnForward;
                         }

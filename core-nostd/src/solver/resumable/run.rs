@@ -256,6 +256,7 @@ impl ChunkedSolve {
     /// The start of an iteration's assembly, once the structure is current.
     pub(super) fn assemble_begin(&mut self, ws: &mut SolverBuffers<'_>, spent: &mut u64) {
         let (vars, nnz, warm) = (ws.key.vars, ws.key.nnz, self.gn.warm);
+        ws.key.factored = false;
         linearize::assemble_begin(vars, nnz, &mut linearize::System::of(ws, warm));
         *spent = spent.saturating_add(((vars + nnz) / 8) as u64);
         self.begin_sum(Phase::GnAssemble);

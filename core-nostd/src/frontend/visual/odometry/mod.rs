@@ -89,7 +89,7 @@ use super::window::{
     BundleWindow, LandmarkStatus, MotionPrior, ObservationStatus, PixelObservation, WindowConfig,
     WindowError, WindowSummary,
 };
-use crate::geom::Se2;
+use crate::geom::{chi2_quantile, Se2};
 
 mod bundle;
 mod landmarks;
@@ -246,14 +246,6 @@ impl<const N: usize, const M: usize, const K: usize> Default for VisualOdometry<
     fn default() -> Self {
         Self::new()
     }
-}
-
-/// The 95 % (for `z = 1.645`) point of a chi2 with `dof` degrees of freedom, by the
-/// Wilson-Hilferty cube approximation.
-fn chi2_quantile(dof: f64, z: f64) -> f64 {
-    let a = 2.0 / (9.0 * dof);
-    let c = 1.0 - a + z * libm::sqrt(a);
-    dof * c * c * c
 }
 
 impl<const N: usize, const M: usize, const K: usize> VisualOdometry<N, M, K> {
