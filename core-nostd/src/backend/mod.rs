@@ -10,6 +10,7 @@
 
 pub mod cells;
 pub mod chow_liu;
+pub mod consistency;
 pub mod dense;
 pub mod marginalize;
 pub mod prune;

@@ -78,6 +78,15 @@ pub struct BackendCounters {
     pub failures: u32,
     /// Solves abandoned because the graph was pruned or cleared while they ran.
     pub abandoned: u32,
+    /// Groups of loop closures removed as inconsistent with the rest of the graph (module
+    /// [`consistency`](crate::backend::consistency)).
+    pub loop_groups_removed: u32,
+    /// Loop edges in those groups.
+    pub loop_edges_removed: u32,
+    /// Rounds of those tests finished.
+    pub consistency_rounds: u32,
+    /// Groups tested in them.
+    pub loop_groups_tested: u32,
 }
 
 /// The back-end's schedule state.
@@ -108,6 +117,10 @@ impl BackendSchedule {
                 optimizations: 0,
                 failures: 0,
                 abandoned: 0,
+                loop_groups_removed: 0,
+                loop_edges_removed: 0,
+                consistency_rounds: 0,
+                loop_groups_tested: 0,
             },
         }
     }
@@ -128,6 +141,18 @@ impl BackendSchedule {
         self.optimizing = false;
         if self.solve.take().is_some() {
             self.counters.abandoned += 1;
+        }
+    }
+
+    /// A round of consistency tests of `tested` loop groups ended, removing `removed` loop
+    /// edges (0: none).
+    pub fn consistency_round(&mut self, tested: u32, removed: usize) {
+        let c = &mut self.counters;
+        c.consistency_rounds += 1;
+        c.loop_groups_tested = c.loop_groups_tested.saturating_add(tested);
+        if removed > 0 {
+            c.loop_groups_removed += 1;
+            c.loop_edges_removed = c.loop_edges_removed.saturating_add(removed as u32);
         }
     }
 

@@ -12,6 +12,7 @@
 use super::frames::{node_index, NodeMeta};
 use super::mirror::MirroredNode;
 use super::MapperConfig;
+use crate::backend::consistency::{Round, RoundProgress, GAP};
 use crate::backend::prune::{PruneReport, PruneScratch};
 use crate::backend::schedule::{
     counts_nearly_full, make_room, BackendCounters, BackendSchedule, BackendStep, PoolPruning,
@@ -93,6 +94,12 @@ pub(crate) struct BackEnd<'r> {
     meta: &'r mut [NodeMeta],
     prune: PruneScratch<'r>,
     schedule: &'r mut BackendSchedule,
+    /// Frame nodes added since the last round of consistency tests began.
+    since_test: u32,
+    /// The last round removed a group: test every group after the next optimization.
+    retest: bool,
+    /// The round of consistency tests in progress.
+    round: Option<Round>,
 }
 
 impl<'r> BackEnd<'r> {
@@ -110,6 +117,9 @@ impl<'r> BackEnd<'r> {
             meta,
             prune,
             schedule,
+            since_test: 0,
+            retest: false,
+            round: None,
         }
     }
 
@@ -220,6 +230,7 @@ impl<'r> BackEnd<'r> {
             *m = meta;
         }
         self.schedule.keyframe_added();
+        self.since_test = self.since_test.saturating_add(1);
         Ok(())
     }
 
@@ -272,6 +283,8 @@ impl<'r> BackEnd<'r> {
         params: &PoolPruning,
         protected: impl IntoIterator<Item = u32>,
     ) -> Option<PruneReport> {
+        // The pruning needs its scratch and changes the graph under a round of tests.
+        self.round = None;
         let n = self.graph.node_count();
         let nodes = self.meta.get(..n).unwrap_or_default();
         let protected = protected.into_iter().filter_map(|s| node_index(nodes, s));
@@ -300,12 +313,51 @@ impl<'r> BackEnd<'r> {
         Some(report)
     }
 
-    /// One step of the due optimization (see
-    /// [`BackendSchedule::step`](crate::backend::schedule::BackendSchedule::step)).
+    /// One step of the back-end's work: the round of consistency tests in progress, else the
+    /// due optimization (see
+    /// [`BackendSchedule::step`](crate::backend::schedule::BackendSchedule::step)). At the
+    /// optimum a finished optimization leaves, a round of consistency tests of the loop groups
+    /// (module [`consistency`](crate::backend::consistency)) begins when [`GAP`] frame nodes
+    /// were added since the last one or the last one removed a group; a removed group asks for
+    /// the optimization without it.
     pub(crate) fn step(&mut self, cfg: &MapperConfig, iterations: u32) -> BackendStep {
         let params = cfg.schedule();
-        self.schedule
-            .step(&mut self.graph, &mut self.solver, &params, iterations)
+        if let Some(round) = &mut self.round {
+            let progress = round.advance(
+                &mut self.graph,
+                &mut self.solver,
+                &mut self.prune,
+                params.work_budget,
+            );
+            if let RoundProgress::Done(removed) = progress {
+                let tested = round.tested();
+                self.round = None;
+                self.retest = removed.is_some();
+                self.schedule
+                    .consistency_round(tested, removed.map_or(0, |r| r.edges));
+                if let Some(r) = removed {
+                    debug!(
+                        "removed a group of {} loop edges inconsistent with the graph (ratio {})",
+                        r.edges, r.ratio
+                    );
+                    self.schedule.loop_added();
+                }
+            }
+            return BackendStep::Working;
+        }
+        let step = self
+            .schedule
+            .step(&mut self.graph, &mut self.solver, &params, iterations);
+        if step == BackendStep::Finished
+            && cfg.backend.consistency_test
+            && (self.retest || self.since_test >= GAP)
+        {
+            self.round = Round::start(&self.graph, &self.solver, &mut self.prune);
+            if self.round.is_some() {
+                self.since_test = 0;
+            }
+        }
+        step
     }
 
     /// The GPE's anchor after an optimization: the node whose estimate agrees best with the

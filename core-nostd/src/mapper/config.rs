@@ -171,6 +171,10 @@ pub struct BackendConfig {
     /// `cloi map --deterministic`), so the back-end's share of a frame is several bounded
     /// steps rather than one larger one; a threaded host runs steps back to back instead.
     pub steps_per_frame: u32,
+    /// Test the groups of loop closures for consistency with the whole graph after an
+    /// optimization and remove the worst inconsistent one (module
+    /// [`consistency`](crate::backend::consistency)).
+    pub consistency_test: bool,
 }
 
 impl BackendConfig {
@@ -190,6 +194,7 @@ impl Default for BackendConfig {
             gate_chi2: 16.27,
             work_budget: BackendConfig::WORK_BUDGET,
             steps_per_frame: 3,
+            consistency_test: true,
         }
     }
 }

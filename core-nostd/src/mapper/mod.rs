@@ -326,6 +326,10 @@ impl<'r> Mapper<'r> {
         s.backend_steps = b.steps;
         s.optimizations = b.optimizations;
         s.optimization_failures = b.failures;
+        s.loop_groups_removed = b.loop_groups_removed;
+        s.loop_edges_removed = b.loop_edges_removed;
+        s.consistency_rounds = b.consistency_rounds;
+        s.loop_groups_tested = b.loop_groups_tested;
         s
     }
 

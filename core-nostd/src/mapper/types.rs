@@ -68,6 +68,15 @@ pub struct MapperStats {
     pub backend_steps: u32,
     /// Back-end optimizations that failed (the estimate was kept).
     pub optimization_failures: u32,
+    /// Groups of loop closures (one revisit of one place each) removed as inconsistent with
+    /// the rest of the graph.
+    pub loop_groups_removed: u32,
+    /// Loop edges in those groups.
+    pub loop_edges_removed: u32,
+    /// Rounds of the consistency test of the loop groups.
+    pub consistency_rounds: u32,
+    /// Loop groups tested in them.
+    pub loop_groups_tested: u32,
     /// Times a full node or edge pool was pruned.
     pub prunes: u32,
     /// Nodes eliminated by pruning.
@@ -106,6 +115,10 @@ impl MapperStats {
         optimizations: 0,
         backend_steps: 0,
         optimization_failures: 0,
+        loop_groups_removed: 0,
+        loop_edges_removed: 0,
+        consistency_rounds: 0,
+        loop_groups_tested: 0,
         prunes: 0,
         nodes_pruned: 0,
     };

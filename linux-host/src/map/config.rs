@@ -150,6 +150,10 @@ pub struct BackendSection {
     /// Most work units of one back-end step (about 100 Cortex-A9 instructions each; a solve
     /// spans as many steps as it needs); 0: no limit, each step runs whole solves.
     pub work_budget: u64,
+    /// Test each revisit's loop closures against the whole graph after an optimization and
+    /// remove the revisit the rest of the graph disagrees with most (a look-alike place
+    /// matched from several keyframes in a row).
+    pub loop_consistency: bool,
 }
 
 /// How the run is scheduled.
@@ -265,6 +269,7 @@ impl MapConfig {
                 iterations: c.backend.max_iterations,
                 prune_cell_size: c.backend.prune_cell,
                 work_budget: c.backend.work_budget,
+                loop_consistency: c.backend.consistency_test,
             },
             run,
         }
@@ -304,6 +309,7 @@ impl MapConfig {
         c.backend.max_iterations = b.iterations;
         c.backend.prune_cell = b.prune_cell_size;
         c.backend.work_budget = b.work_budget;
+        c.backend.consistency_test = b.loop_consistency;
         c
     }
 

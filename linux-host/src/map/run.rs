@@ -1136,6 +1136,10 @@ fn stats_json(s: &MapperStats) -> serde_json::Value {
         "optimizations": s.optimizations,
         "backend_steps": s.backend_steps,
         "optimization_failures": s.optimization_failures,
+        "loop_groups_removed": s.loop_groups_removed,
+        "loop_edges_removed": s.loop_edges_removed,
+        "consistency_rounds": s.consistency_rounds,
+        "loop_groups_tested": s.loop_groups_tested,
         "prunes": s.prunes,
         "nodes_pruned": s.nodes_pruned,
     })
