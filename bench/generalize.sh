@@ -19,7 +19,7 @@
 # The seeds, sizes and gyro variants were fixed before any result was seen; do not edit the
 # list to make the figures look better.
 #
-#   [CLOI_BIN=PATH] bench/generalize.sh [--quick] [--heldout] [--perturb] [--noise N] [--only REGEX] [--jobs 2] [--out target/bench-generalize]
+#   [CLOI_BIN=PATH] bench/generalize.sh [--quick] [--heldout] [--perturb] [--noise N] [--only REGEX] [--config FILE] [--jobs 2] [--out target/bench-generalize]
 #
 # --quick:   5 small and medium worlds, no CARMEN logs (a few minutes; for CI).
 # --heldout: 8 worlds no setting was chosen on (see HELDOUT_WORLDS), no CARMEN logs.
@@ -33,6 +33,8 @@
 # --only:    keep only the runs (worlds and logs) whose name matches the extended regular
 #            expression, e.g. --only 'gen:(107|201)|intel' to look again at a few of them; the
 #            summary lines then describe that subset, not the benchmark.
+# --config:  a `cloi map --config` file given to every run (a setting that is off by default,
+#            e.g. bench/loop-consistency.toml).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -59,6 +61,7 @@ mode=full
 jobs=2
 out=target/bench-generalize
 only=
+map_config=
 noise=1
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -68,6 +71,7 @@ while [ $# -gt 0 ]; do
     --jobs) jobs=$2; shift 2 ;;
     --out) out=$2; shift 2 ;;
     --only) only=$2; shift 2 ;;
+    --config) map_config=$(realpath "$2"); shift 2 ;;
     --noise) noise=$2; shift 2 ;;
     *) echo "unknown option $1" >&2; exit 2 ;;
   esac
@@ -98,7 +102,8 @@ run_world() {
   dur=$(sed -n 's/^duration: \([0-9.]*\) s$/\1/p' "$dir/sim.txt")
   t0=$(date +%s.%N)
   if "$cloi" map --sim-world "$world" --sim-duration "$dur" --sim-seed "$seed" \
-      --profile "$profile" --deterministic --quiet --out "$dir/map" > "$dir/map.txt" 2>&1; then
+      --profile "$profile" ${map_config:+--config "$map_config"} --deterministic --quiet \
+      --out "$dir/map" > "$dir/map.txt" 2>&1; then
     t1=$(date +%s.%N)
     # A guard: an evaluation that does not end in two minutes gives no result for its column
     # rather than stalling the table (the rotation step that once spun is bounded now).
@@ -147,6 +152,7 @@ run_dir() {
 run_log() {
   local log=$1 config=${2:-} name dir laser t0 t1 extra=()
   name=$log${config:+-$(basename "$config" .toml)}
+  config=${config:-$map_config}
   dir="$out/$name"
   rm -rf "$dir"; mkdir -p "$dir"
   [ -n "$config" ] && extra=(--config "$config")

@@ -316,6 +316,30 @@ fn two_laps_close_loops_and_stay_consistent() {
     });
 }
 
+/// The same two laps with the consistency test of revisits on (`backend::consistency`): rounds
+/// run between optimizations, every revisit here is right so none is removed, and the laps
+/// stay as consistent as without the test.
+#[test]
+fn the_consistency_test_runs_and_keeps_right_revisits() {
+    with_stack(|| {
+        let mut cfg = config();
+        cfg.backend.consistency_test = true;
+        let r = run(cfg);
+        let s = r.stats;
+        assert!(s.loop_closures >= 2, "{s:?}");
+        assert!(s.consistency_rounds >= 1, "{s:?}");
+        assert!(s.loop_groups_tested >= 1, "{s:?}");
+        assert_eq!(s.loop_groups_removed, 0, "{s:?}");
+        assert_eq!(s.loop_edges_removed, 0, "{s:?}");
+        let lap = r.truth.len() / 2;
+        let e0 = r.truth[0].between(&r.truth[lap]);
+        let e = r.final_poses[0].between(&r.final_poses[lap]);
+        let d = e0.between(&e);
+        assert!(libm::hypot(d.x, d.y) < 0.05, "lap closure error {d:?}");
+        assert!(relative_error(&r.final_poses, &r.truth, 20) < 0.05);
+    });
+}
+
 /// Frames of the first lap's second corner turn (turning on the spot, 0.157 rad per frame).
 fn second_turn() -> core::ops::Range<usize> {
     let truth = path();
