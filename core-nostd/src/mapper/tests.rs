@@ -285,6 +285,16 @@ fn relative_error(est: &[Se2], truth: &[Se2], span: usize) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// How far apart, in metres, the optimized trajectory puts the start and the same place one lap
+/// later, relative to the truth (the map frame is the first pose's).
+fn lap_closure_error(r: &Run) -> f64 {
+    let lap = r.truth.len() / 2;
+    let e0 = r.truth[0].between(&r.truth[lap]);
+    let e = r.final_poses[0].between(&r.final_poses[lap]);
+    let d = e0.between(&e);
+    libm::hypot(d.x, d.y)
+}
+
 #[test]
 fn two_laps_close_loops_and_stay_consistent() {
     with_stack(|| {
@@ -296,13 +306,9 @@ fn two_laps_close_loops_and_stay_consistent() {
         assert!(s.loop_closures >= 2, "{s:?}");
         assert!(s.optimizations >= 1, "{s:?}");
         assert_eq!(s.icp_failures, 0, "{s:?}");
-        // Global consistency: the start and the same place one lap later agree (the map frame
-        // is the first pose's).
-        let lap = r.truth.len() / 2;
-        let e0 = r.truth[0].between(&r.truth[lap]);
-        let e = r.final_poses[0].between(&r.final_poses[lap]);
-        let d = e0.between(&e);
-        assert!(libm::hypot(d.x, d.y) < 0.05, "lap closure error {d:?}");
+        // Global consistency: the start and the same place one lap later agree.
+        let lap = lap_closure_error(&r);
+        assert!(lap < 0.05, "lap closure error {lap} m");
         // Local consistency over 2 s windows, of the optimized and of the real-time trajectory.
         let rt: Vec<Se2> = r.outputs.iter().map(|o| o.pose).collect();
         assert!(relative_error(&r.final_poses, &r.truth, 20) < 0.05);
@@ -331,11 +337,8 @@ fn the_consistency_test_runs_and_keeps_right_revisits() {
         assert!(s.loop_groups_tested >= 1, "{s:?}");
         assert_eq!(s.loop_groups_removed, 0, "{s:?}");
         assert_eq!(s.loop_edges_removed, 0, "{s:?}");
-        let lap = r.truth.len() / 2;
-        let e0 = r.truth[0].between(&r.truth[lap]);
-        let e = r.final_poses[0].between(&r.final_poses[lap]);
-        let d = e0.between(&e);
-        assert!(libm::hypot(d.x, d.y) < 0.05, "lap closure error {d:?}");
+        let lap = lap_closure_error(&r);
+        assert!(lap < 0.05, "lap closure error {lap} m");
         assert!(relative_error(&r.final_poses, &r.truth, 20) < 0.05);
     });
 }
@@ -892,11 +895,8 @@ fn a_loop_beyond_the_window_is_found_by_the_far_search_confirmed_and_closes_the_
         assert!(s.far_confirmed >= 1, "{s:?}");
         // The far match and at least one edge per supporting keyframe.
         assert!(s.loop_closures as usize > far::accept::SUPPORT, "{s:?}");
-        let lap = r.truth.len() / 2;
-        let e0 = r.truth[0].between(&r.truth[lap]);
-        let e = r.final_poses[0].between(&r.final_poses[lap]);
-        let d = e0.between(&e);
-        assert!(libm::hypot(d.x, d.y) < 0.05, "lap closure error {d:?}");
+        let lap = lap_closure_error(&r);
+        assert!(lap < 0.05, "lap closure error {lap} m");
         assert!(relative_error(&r.final_poses, &r.truth, 20) < 0.05);
     });
 }
@@ -908,11 +908,8 @@ fn the_far_search_closes_the_lap_while_the_optimizer_never_rests() {
         let s = r.stats;
         assert!(s.far_searches > 0, "{s:?}");
         assert!(s.far_confirmed >= 1, "{s:?}");
-        let lap = r.truth.len() / 2;
-        let e0 = r.truth[0].between(&r.truth[lap]);
-        let e = r.final_poses[0].between(&r.final_poses[lap]);
-        let d = e0.between(&e);
-        assert!(libm::hypot(d.x, d.y) < 0.05, "lap closure error {d:?}");
+        let lap = lap_closure_error(&r);
+        assert!(lap < 0.05, "lap closure error {lap} m");
     });
 }
 

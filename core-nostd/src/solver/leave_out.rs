@@ -22,9 +22,10 @@
 //! ordered by minimum degree those paths are a small part of the factor.
 //!
 //! The factor is the one the last solve left ([`factor_usable`]), or one made for the purpose
-//! ([`factorize_at_estimate`]). Every edge takes part with the weight of its component in that
-//! system: an edge the max-mixture had switched off is out of the factor and out of the test,
-//! as are nodes and edges added after the factor's analysis.
+//! ([`factorize_at_estimate`]). An edge the max-mixture had switched off is out of the factor
+//! and out of the test, as are nodes and edges added after the factor's analysis; every other
+//! edge takes part with the weight of the component its max-mixture picks at the current
+//! estimate (after a converged solve, the one the factor was assembled with).
 
 use super::cholesky::{mul_tv, mul_v};
 use super::linearize::{weigh, Stage, Warm};
