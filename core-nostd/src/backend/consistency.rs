@@ -27,7 +27,9 @@
 //! look-alike groups passed every test at completion and failed later). So each round tests
 //! every complete group again. A group's test costs `3 (m + 1)` substitutions along the
 //! elimination tree (`m` edges), a small part of a solve; a round spans as many back-end steps
-//! as its work budget needs, and the optimizer waits for it.
+//! as its work budget needs. The mapper gives it only the turns the optimizer and the far loop
+//! search leave and drops it when an optimization starts first, so tests that remove nothing
+//! change nothing.
 //!
 //! Scratch: the pruning's per-node and per-edge arrays, free between prunings (the group of
 //! each anchor, the group's last edge, the chain of edges of each group, the dense matrix of

@@ -94,7 +94,7 @@ pub(crate) struct BackEnd<'r> {
     meta: &'r mut [NodeMeta],
     prune: PruneScratch<'r>,
     schedule: &'r mut BackendSchedule,
-    /// Frame nodes added since the last round of consistency tests began.
+    /// Frame nodes added since the last round of consistency tests ended.
     since_test: u32,
     /// The last round removed a group: test every group after the next optimization.
     retest: bool,
@@ -313,51 +313,61 @@ impl<'r> BackEnd<'r> {
         Some(report)
     }
 
-    /// One step of the back-end's work: the round of consistency tests in progress, else the
-    /// due optimization (see
+    /// One step of the due optimization (see
     /// [`BackendSchedule::step`](crate::backend::schedule::BackendSchedule::step)). At the
     /// optimum a finished optimization leaves, a round of consistency tests of the loop groups
     /// (module [`consistency`](crate::backend::consistency)) begins when [`GAP`] frame nodes
-    /// were added since the last one or the last one removed a group; a removed group asks for
-    /// the optimization without it.
+    /// were added since the last round ended or the last one removed a group; the round runs
+    /// in the turns nothing else wants ([`BackEnd::step_round`]), and an optimization that
+    /// starts before it ends moves the estimates it tests at, so it is dropped (the next
+    /// optimum begins a new one).
     pub(crate) fn step(&mut self, cfg: &MapperConfig, iterations: u32) -> BackendStep {
         let params = cfg.schedule();
-        if let Some(round) = &mut self.round {
-            let progress = round.advance(
-                &mut self.graph,
-                &mut self.solver,
-                &mut self.prune,
-                params.work_budget,
-            );
-            if let RoundProgress::Done(removed) = progress {
-                let tested = round.tested();
-                self.round = None;
-                self.retest = removed.is_some();
-                self.schedule
-                    .consistency_round(tested, removed.map_or(0, |r| r.edges));
-                if let Some(r) = removed {
-                    debug!(
-                        "removed a group of {} loop edges inconsistent with the graph (ratio {})",
-                        r.edges, r.ratio
-                    );
-                    self.schedule.loop_added();
-                }
-            }
-            return BackendStep::Working;
-        }
         let step = self
             .schedule
             .step(&mut self.graph, &mut self.solver, &params, iterations);
+        if step != BackendStep::Idle {
+            self.round = None;
+        }
         if step == BackendStep::Finished
             && cfg.backend.consistency_test
             && (self.retest || self.since_test >= GAP)
         {
             self.round = Round::start(&self.graph, &self.solver, &mut self.prune);
-            if self.round.is_some() {
-                self.since_test = 0;
-            }
         }
         step
+    }
+
+    /// One step of the round of consistency tests in progress, for a turn that neither the
+    /// optimizer nor the far loop search wanted: the tests take only the back-end's spare
+    /// time, so a round that removes nothing leaves the map as it would be without it. A
+    /// removed group asks for the optimization without it. Whether there was a round.
+    pub(crate) fn step_round(&mut self, cfg: &MapperConfig) -> bool {
+        let Some(round) = &mut self.round else {
+            return false;
+        };
+        let progress = round.advance(
+            &mut self.graph,
+            &mut self.solver,
+            &mut self.prune,
+            cfg.schedule().work_budget,
+        );
+        if let RoundProgress::Done(removed) = progress {
+            let tested = round.tested();
+            self.round = None;
+            self.since_test = 0;
+            self.retest = removed.is_some();
+            self.schedule
+                .consistency_round(tested, removed.map_or(0, |r| r.edges));
+            if let Some(r) = removed {
+                debug!(
+                    "removed a group of {} loop edges inconsistent with the graph (ratio {})",
+                    r.edges, r.ratio
+                );
+                self.schedule.loop_added();
+            }
+        }
+        true
     }
 
     /// The GPE's anchor after an optimization: the node whose estimate agrees best with the

@@ -1,8 +1,9 @@
 //! The back-end's turns in an interleaved schedule (section III-D's back-end sharing one
 //! processor with the real-time part, as on the firmware): the caller gives it steps between
-//! frames, and the optimizer and the far loop search take turns in them. While the back-end
-//! is detached (module `link`) its worker steps the optimizer and the real-time part runs
-//! the far search.
+//! frames, and the optimizer and the far loop search take turns in them; the consistency tests
+//! of the loop groups take the turns both leave. While the back-end is detached (module
+//! `link`) its worker steps the optimizer and the tests, and the real-time part runs the far
+//! search.
 
 use super::link::BackLink;
 use super::{BackendStep, Mapper};
@@ -57,9 +58,17 @@ impl Mapper<'_> {
         if step != BackendStep::Idle {
             self.refresh_mirror();
         }
-        // The far loop search also takes every turn the optimizer leaves idle.
-        if step == BackendStep::Idle && self.step_far() {
-            return BackendStep::Working;
+        // The far loop search also takes every turn the optimizer leaves idle, and the
+        // consistency tests of the loop groups every turn both leave.
+        if step == BackendStep::Idle {
+            if self.step_far() {
+                return BackendStep::Working;
+            }
+            if let BackLink::Local(back) = &mut self.back {
+                if back.step_round(&self.cfg) {
+                    return BackendStep::Working;
+                }
+            }
         }
         step
     }

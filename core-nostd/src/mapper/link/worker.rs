@@ -40,11 +40,14 @@ impl core::fmt::Debug for BackendWorker<'_> {
 impl BackendWorker<'_> {
     /// Takes the real-time part's messages, then runs one step of the due optimization (at
     /// most `config.backend.work_budget` work units, solves of at most `iterations`
-    /// Gauss-Newton iterations) and reports what changed. `Idle` when there was nothing to
+    /// Gauss-Newton iterations), or else of the consistency tests in progress, and reports
+    /// what changed. `Idle` when there was nothing to
     /// do at all.
     pub fn step(&mut self, iterations: u32) -> BackendStep {
         let took = self.take_messages();
         let step = self.back.step(&self.cfg, iterations);
+        // The consistency tests take the turns the optimizer leaves; they move no estimate.
+        let tested = step == BackendStep::Idle && self.back.step_round(&self.cfg);
         if step == BackendStep::Finished {
             self.chosen = self.back.choose_anchor(&self.cfg.noise);
             let newest = self.back.newest().and_then(|i| self.back.meta(i));
@@ -53,12 +56,14 @@ impl BackendWorker<'_> {
         if step != BackendStep::Idle {
             self.estimates_changed();
         }
-        let idle = step == BackendStep::Idle && !took;
+        let idle = step == BackendStep::Idle && !took && !tested;
         self.dirty |= idle != self.state.idle;
         self.state.idle = idle;
         self.publish();
         match step {
-            BackendStep::Idle if took || self.due > 0 || self.dirty => BackendStep::Working,
+            BackendStep::Idle if took || tested || self.due > 0 || self.dirty => {
+                BackendStep::Working
+            }
             s => s,
         }
     }
