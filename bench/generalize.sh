@@ -33,8 +33,8 @@
 # --only:    keep only the runs (worlds and logs) whose name matches the extended regular
 #            expression, e.g. --only 'gen:(107|201)|intel' to look again at a few of them; the
 #            summary lines then describe that subset, not the benchmark.
-# --config:  a `cloi map --config` file given to every run (a setting that is off by default,
-#            e.g. bench/loop-consistency.toml).
+# --config:  a `cloi map --config` file given to every run, to measure a setting against its
+#            default (e.g. bench/no-loop-consistency.toml).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

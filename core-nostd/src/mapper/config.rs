@@ -173,7 +173,7 @@ pub struct BackendConfig {
     pub steps_per_frame: u32,
     /// Test the groups of loop closures for consistency with the whole graph after an
     /// optimization and remove the worst inconsistent one (module
-    /// [`consistency`](crate::backend::consistency)). Off by default.
+    /// [`consistency`](crate::backend::consistency)), in the back-end's spare turns.
     pub consistency_test: bool,
 }
 
@@ -194,9 +194,7 @@ impl Default for BackendConfig {
             gate_chi2: 16.27,
             work_budget: BackendConfig::WORK_BUDGET,
             steps_per_frame: 3,
-            // Off until it no longer shifts the optimizer's timing in multi-session runs
-            // (docs/benchmarks.md, "the consistency test of whole revisits").
-            consistency_test: false,
+            consistency_test: true,
         }
     }
 }

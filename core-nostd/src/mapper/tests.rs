@@ -329,7 +329,9 @@ fn two_laps_close_loops_and_stay_consistent() {
 #[test]
 fn the_consistency_test_keeps_right_revisits_and_changes_nothing() {
     with_stack(|| {
-        let without = run(config());
+        let mut off = config();
+        off.backend.consistency_test = false;
+        let without = run(off);
         let mut cfg = config();
         cfg.backend.consistency_test = true;
         let r = run(cfg);
