@@ -41,8 +41,7 @@ impl BackendWorker<'_> {
     /// Takes the real-time part's messages, then runs one step of the due optimization (at
     /// most `config.backend.work_budget` work units, solves of at most `iterations`
     /// Gauss-Newton iterations), or else of the consistency tests in progress, and reports
-    /// what changed. `Idle` when there was nothing to
-    /// do at all.
+    /// what changed. `Idle` when there was nothing to do at all.
     pub fn step(&mut self, iterations: u32) -> BackendStep {
         let took = self.take_messages();
         let step = self.back.step(&self.cfg, iterations);
