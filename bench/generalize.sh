@@ -19,10 +19,12 @@
 # The seeds, sizes and gyro variants were fixed before any result was seen; do not edit the
 # list to make the figures look better.
 #
-#   [CLOI_BIN=PATH] bench/generalize.sh [--quick] [--heldout] [--perturb] [--noise N] [--only REGEX] [--config FILE] [--jobs 2] [--out target/bench-generalize]
+#   [CLOI_BIN=PATH] bench/generalize.sh [--quick] [--heldout] [--worlds 'W...'] [--perturb] [--noise N] [--only REGEX] [--config FILE] [--jobs 2] [--out target/bench-generalize]
 #
 # --quick:   5 small and medium worlds, no CARMEN logs (a few minutes; for CI).
 # --heldout: 8 worlds no setting was chosen on (see HELDOUT_WORLDS), no CARMEN logs.
+# --worlds:  the given generated worlds instead (space-separated `gen:SEED:SIZE[:nogyro]`), no
+#            CARMEN logs: seeds chosen (and written down) before a change is judged on them.
 # --perturb: each CARMEN log under 8 perturbations of the loop-closure and front-end settings
 #            (--config files written to OUT/perturb), printing each run's error and the spread
 #            (worst / unperturbed).
@@ -67,6 +69,7 @@ while [ $# -gt 0 ]; do
   case "$1" in
     --quick) mode=quick; shift ;;
     --heldout) mode=heldout; shift ;;
+    --worlds) mode=custom; read -ra CUSTOM_WORLDS <<< "$2"; shift 2 ;;
     --perturb) mode=perturb; shift ;;
     --jobs) jobs=$2; shift 2 ;;
     --out) out=$2; shift 2 ;;
@@ -256,10 +259,11 @@ PY
 
 started=$(date +%s)
 case "$mode" in
-  quick|heldout|full)
+  quick|heldout|custom|full)
     case "$mode" in
       quick) list=("${QUICK_WORLDS[@]}"); logs=() ;;
       heldout) list=("${HELDOUT_WORLDS[@]}"); logs=() ;;
+      custom) list=("${CUSTOM_WORLDS[@]}"); logs=() ;;
       full) list=("${WORLDS[@]}"); logs=("${LOGS[@]}") ;;
     esac
     if [ -n "$only" ]; then
