@@ -371,36 +371,89 @@ pub fn voxel_downsample<const N: usize>(pts: &mut ScanPoints<N>, voxel: f32) -> 
         while end < before && voxel_key(&pts[end].p, inv) == key {
             end += 1;
         }
-        let count = (end - read) as f32;
-        let (mut sx, mut sy, mut nx, mut ny) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
-        let first_n = pts[read].n;
-        for q in &pts[read..end] {
-            sx += q.p[0];
-            sy += q.p[1];
-            // Align signs with the first normal before averaging.
-            let sign = if q.n[0] * first_n[0] + q.n[1] * first_n[1] < 0.0 {
-                -1.0
-            } else {
-                1.0
-            };
-            nx += sign * q.n[0];
-            ny += sign * q.n[1];
-        }
-        let norm = libm::sqrtf(nx * nx + ny * ny);
-        let n = if norm > 1e-3 {
-            [nx / norm, ny / norm]
-        } else {
-            [0.0, 0.0]
-        };
-        pts[write] = ScanPoint {
-            p: [sx / count, sy / count],
-            n,
-        };
+        pts[write] = centroid(&pts[read..end]);
         write += 1;
         read = end;
     }
     pts.truncate(write);
     before - write
+}
+
+/// A total order on points (position, then normal, by their IEEE total order): equal only for
+/// identical points, so sorting by it gives one result whatever the algorithm.
+pub(crate) fn point_order(a: &ScanPoint, b: &ScanPoint) -> core::cmp::Ordering {
+    a.p[0]
+        .total_cmp(&b.p[0])
+        .then_with(|| a.p[1].total_cmp(&b.p[1]))
+        .then_with(|| a.n[0].total_cmp(&b.n[0]))
+        .then_with(|| a.n[1].total_cmp(&b.n[1]))
+}
+
+/// Sorts `items` by the voxel of their point (`point(item)`), then by a total order on the
+/// points, and replaces every voxel's run by `merge(run)`. Returns how many items were merged
+/// away. The total order makes the rounding of the merged sums independent of the sort
+/// algorithm, and `crate::sort` has no recursion (the firmware's stack has a static bound).
+pub(crate) fn merge_voxels<T: Copy, const N: usize>(
+    items: &mut heapless::Vec<T, N>,
+    voxel: f32,
+    point: impl Fn(&T) -> &ScanPoint,
+    mut merge: impl FnMut(&[T]) -> T,
+) -> usize {
+    let inv = 1.0 / voxel;
+    let key = |t: &T| voxel_key(&point(t).p, inv);
+    crate::sort::sort_by(&mut items[..], |a, b| {
+        key(a)
+            .cmp(&key(b))
+            .then_with(|| point_order(point(a), point(b)))
+    });
+    let before = items.len();
+    let mut write = 0usize;
+    let mut read = 0usize;
+    while read < before {
+        let k = key(&items[read]);
+        let mut end = read + 1;
+        while end < before && key(&items[end]) == k {
+            end += 1;
+        }
+        items[write] = merge(&items[read..end]);
+        write += 1;
+        read = end;
+    }
+    items.truncate(write);
+    before - write
+}
+
+/// The centroid of `run` (not empty), with the mean of its normals: each normal's sign is
+/// first aligned with the first one's, and the mean is renormalised (zero when the normals
+/// cancel or none had one).
+pub(crate) fn centroid<'a>(run: impl IntoIterator<Item = &'a ScanPoint>) -> ScanPoint {
+    let mut count = 0u32;
+    let (mut sx, mut sy, mut nx, mut ny) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
+    let mut first_n = None;
+    for q in run {
+        count += 1;
+        sx += q.p[0];
+        sy += q.p[1];
+        let f: [f32; 2] = *first_n.get_or_insert(q.n);
+        let sign = if q.n[0] * f[0] + q.n[1] * f[1] < 0.0 {
+            -1.0
+        } else {
+            1.0
+        };
+        nx += sign * q.n[0];
+        ny += sign * q.n[1];
+    }
+    let count = count.max(1) as f32;
+    let norm = libm::sqrtf(nx * nx + ny * ny);
+    let n = if norm > 1e-3 {
+        [nx / norm, ny / norm]
+    } else {
+        [0.0, 0.0]
+    };
+    ScanPoint {
+        p: [sx / count, sy / count],
+        n,
+    }
 }
 
 #[cfg(test)]
