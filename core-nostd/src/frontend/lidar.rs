@@ -259,7 +259,7 @@ impl LidarFrontend {
             })
             .and_then(|cov| Self::prediction_information(previous.pose.theta, &cov));
         let mut pose = seed;
-        if !local.points().is_empty() {
+        if !local.is_empty() {
             let turn = libm::fabs(increment.theta);
             let scale = self.noise_scale.max(1.0);
             let prior = predicted.map(|information| Prior {

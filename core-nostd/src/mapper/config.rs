@@ -241,6 +241,11 @@ pub struct MapperConfig {
     pub local_reset: f64,
     /// Voxel of the local point map, metres.
     pub local_voxel: f32,
+    /// When positive, the local point map slides instead of restarting: a point is kept
+    /// while it is within `local_radius`, was seen within this much front-end path
+    /// (metres), and a second keyframe saw it (`frontend::pointmap`). Zero restarts the map
+    /// every `local_reset` metres.
+    pub local_span: f64,
     /// On a restart, the local point map is refilled from the occupied cells of the two
     /// newest submaps (instead of starting from the current scan alone).
     pub local_from_submaps: bool,
@@ -284,6 +289,7 @@ impl Default for MapperConfig {
             local_radius: 30.0,
             local_reset: 3.0,
             local_voxel: 0.05,
+            local_span: 0.0,
             local_from_submaps: true,
             local_min_log_odds: 10,
             grid: GridParams::LARGE,
@@ -333,11 +339,14 @@ impl MapperConfig {
     /// submaps at 10 cm, scans voxelised at 10 cm, a keyframe every 0.5 m and a 1 m pruning
     /// cell, so that the graph of a 60,000 m^2 hall fits the profile's pools.
     ///
-    /// The local point map restarts from the current scan, not from the submaps' cells: a
-    /// 30 m LiDAR's own scan already covers the area around the robot, while 10 cm cells of
-    /// a wall at a slant to the grid form a staircase whose cell centres leave the heading
-    /// nearly free and tilt it where two submaps meet; along a hall's one visible wall that
-    /// drifts the heading by a few hundredths of a degree per scan (`docs/benchmarks.md`).
+    /// The local point map slides over the last 30 m of path (`local_span`, the LiDAR's
+    /// reach): a guide robot scanning at 1 Hz in halls wider than its range needs the far
+    /// walls and the sparse returns of glass that the scans of the last few metres alone do
+    /// not hold, and a restart refilled from the submaps' cells would not either (10 cm cells
+    /// of a wall at a slant to the grid form a staircase whose centres leave the heading
+    /// nearly free and tilt it where two submaps meet). With `local_span` = 0 it restarts
+    /// from the current scan (`local_from_submaps` off). `docs/benchmarks.md` has the
+    /// measurements; the office and home profiles still restart (the same section says why).
     pub fn airport() -> Self {
         let base = MapperConfig::office();
         MapperConfig {
@@ -358,6 +367,7 @@ impl MapperConfig {
                 prune_cell: 1.0,
                 ..base.backend
             },
+            local_span: 30.0,
             local_from_submaps: false,
             ..base
         }

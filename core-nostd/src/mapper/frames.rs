@@ -212,7 +212,7 @@ impl Mapper<'_> {
         if let Some(slot) = submap {
             self.insert_into_submap(slot, pose);
         }
-        self.update_local_map(pose);
+        self.update_local_map(pose, &travel);
         Some(serial)
     }
 }

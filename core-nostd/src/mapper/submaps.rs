@@ -8,18 +8,27 @@
 //! one the map loses least by.
 //!
 //! **Local point map.** The front-end matches against points of the recent keyframes in its
-//! own frame. The map restarts when the robot is farther than `local_reset` from where it last
+//! own frame. With `local_span` > 0 the map slides (`frontend::pointmap`): before each
+//! keyframe goes in, it forgets points beyond `local_radius`, points not seen within
+//! `local_span` metres of path, and points no second keyframe confirmed. With `local_span`
+//! = 0 it restarts when the robot is farther than `local_reset` from where it last
 //! restarted, refilled (with `local_from_submaps`) from the occupied cells of the two newest
-//! submaps, so the front-end keeps matching against the recent past instead of a single scan.
+//! submaps.
 
 use super::loops::NORMAL_RADIUS;
 use super::Mapper;
 use crate::frontend::lidar::Travel;
+use crate::frontend::pointmap::Slide;
 use crate::frontend::Submap;
 use crate::geom::Se2;
 
 /// Submaps (the newest) that refill a restarted local point map.
 const REFILL_SUBMAPS: usize = 2;
+
+/// Keyframes after its first within which a sliding local map's point must be seen again,
+/// or be forgotten: a wall in view is hit by the next keyframe's scan; a sparse return (glass
+/// passes most beams) gets three chances; a person walking by has left the voxel.
+const LOCAL_CONFIRM: u32 = 3;
 
 /// A submap slot.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -163,9 +172,23 @@ impl Mapper<'_> {
         }
     }
 
-    /// Adds the current scan, taken at front-end pose `pose`, to the local point map,
-    /// restarting (and refilling) the map first when the robot left its area.
-    pub(crate) fn update_local_map(&mut self, pose: &Se2) {
+    /// Adds the current scan, taken at front-end pose `pose` after `travel`, to the local
+    /// point map: a sliding map (`local_span` > 0) first forgets what it no longer holds; a
+    /// restarted one restarts (and refills) first when the robot left its area.
+    pub(crate) fn update_local_map(&mut self, pose: &Se2, travel: &Travel) {
+        let path = travel.path as f32;
+        if self.cfg.local_span > 0.0 {
+            let slide = Slide {
+                radius: self.cfg.local_radius,
+                span: self.cfg.local_span as f32,
+                confirm: LOCAL_CONFIRM,
+            };
+            let at = [pose.x as f32, pose.y as f32];
+            self.local.forget(at, path, &slide, self.scan.len());
+            self.local
+                .insert_stamped(pose, self.scan, self.cfg.local_radius, path);
+            return;
+        }
         let restart = match self.st.submaps.local_origin {
             Some(o) => libm::hypot(pose.x - o.x, pose.y - o.y) > self.cfg.local_reset,
             None => true,

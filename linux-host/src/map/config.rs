@@ -78,6 +78,9 @@ pub struct IcpSection {
     /// Motion the scan matcher measures while the odometry reports exactly none (a stalled
     /// odometry stream) is taken off the odometry's next increment.
     pub stall_compensation: bool,
+    /// The reference ICP matches against (the local point map) keeps what two keyframes saw
+    /// within this much path, metres; 0 restarts it every 3 m from the two newest submaps.
+    pub local_map_span: f64,
 }
 
 /// When a scan becomes a keyframe.
@@ -246,6 +249,7 @@ impl MapConfig {
                 min_points: c.icp.min_points,
                 turn_reseed_rms: c.turn_reseed_rms,
                 stall_compensation: c.stall_motion.is_some(),
+                local_map_span: c.local_span,
             },
             keyframes: KeyframeSection {
                 distance: c.keyframe.distance,
@@ -293,6 +297,7 @@ impl MapConfig {
         c.stall_motion = i
             .stall_compensation
             .then(|| base.stall_motion.unwrap_or(MapperConfig::STALL_MOTION));
+        c.local_span = i.local_map_span;
         c.keyframe.distance = self.keyframes.distance;
         c.keyframe.angle = self.keyframes.angle;
         c.grid.resolution = self.submaps.resolution;
@@ -404,6 +409,9 @@ impl MapConfig {
         if !(i.turn_reseed_rms >= 0.0 && i.turn_reseed_rms.is_finite()) {
             bail!("icp.turn_reseed_rms must be zero or positive");
         }
+        if !(i.local_map_span >= 0.0 && i.local_map_span.is_finite()) {
+            bail!("icp.local_map_span must be zero or positive");
+        }
         let k = &self.keyframes;
         if !(k.distance > 0.0 && k.angle > 0.0) {
             bail!("keyframes: distance and angle must be positive");
@@ -513,14 +521,22 @@ mod tests {
         assert!((office.submaps.size_m() - 10.0).abs() < 1e-6);
         assert!((airport.submaps.size_m() - 10.0).abs() < 1e-6);
         assert_eq!(airport.submaps.resolution, 0.1);
-        // The larger profiles differ from home's ICP only in when the turn seeds are tried.
+        // The larger profiles differ from home's ICP only in when the turn seeds are tried,
+        // and the airport's local map slides over its LiDAR's 30 m.
         assert!(home.icp.stall_compensation && home.icp.turn_reseed_rms > 0.0);
+        assert_eq!(home.icp.local_map_span, 0.0);
         let larger = IcpSection {
             turn_reseed_rms: 0.0,
             ..home.icp
         };
         assert_eq!(office.icp, larger);
-        assert_eq!(airport.icp, larger);
+        assert_eq!(
+            airport.icp,
+            IcpSection {
+                local_map_span: 30.0,
+                ..larger
+            }
+        );
     }
 
     #[test]

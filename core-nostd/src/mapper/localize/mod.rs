@@ -274,7 +274,7 @@ impl Mapper<'_> {
         probe.enter(Section::Keyframe);
         let keyframe = self.st.frames.offer(&front.pose);
         if keyframe {
-            self.update_local_map(&front.pose);
+            self.update_local_map(&front.pose, &travel);
             probe.enter(Section::LoopSearch);
             if let Some((fix, information)) = self.relocalize(stamp, front) {
                 // Tracking (re)starts here: the pose moves to the map once, then follows it.
