@@ -362,21 +362,7 @@ pub fn voxel_downsample<const N: usize>(pts: &mut ScanPoints<N>, voxel: f32) -> 
     // 15), so core's sort stays here until they do not: `crate::sort::sort_by` with a
     // total order on the points as the tie-break is the recursion-free replacement.
     pts.sort_unstable_by_key(|a| voxel_key(&a.p, inv));
-    let before = pts.len();
-    let mut write = 0usize;
-    let mut read = 0usize;
-    while read < before {
-        let key = voxel_key(&pts[read].p, inv);
-        let mut end = read + 1;
-        while end < before && voxel_key(&pts[end].p, inv) == key {
-            end += 1;
-        }
-        pts[write] = centroid(&pts[read..end]);
-        write += 1;
-        read = end;
-    }
-    pts.truncate(write);
-    before - write
+    merge_runs(pts, |a| voxel_key(&a.p, inv), |run| centroid(run))
 }
 
 /// A total order on points (position, then normal, by their IEEE total order): equal only for
@@ -397,7 +383,7 @@ pub(crate) fn merge_voxels<T: Copy, const N: usize>(
     items: &mut heapless::Vec<T, N>,
     voxel: f32,
     point: impl Fn(&T) -> &ScanPoint,
-    mut merge: impl FnMut(&[T]) -> T,
+    merge: impl FnMut(&[T]) -> T,
 ) -> usize {
     let inv = 1.0 / voxel;
     let key = |t: &T| voxel_key(&point(t).p, inv);
@@ -406,6 +392,16 @@ pub(crate) fn merge_voxels<T: Copy, const N: usize>(
             .cmp(&key(b))
             .then_with(|| point_order(point(a), point(b)))
     });
+    merge_runs(items, key, merge)
+}
+
+/// Replaces every run of consecutive items with equal `key` by `merge(run)` (the items are
+/// sorted by it). Returns how many items were merged away.
+fn merge_runs<T: Copy, K: PartialEq, const N: usize>(
+    items: &mut heapless::Vec<T, N>,
+    key: impl Fn(&T) -> K,
+    mut merge: impl FnMut(&[T]) -> T,
+) -> usize {
     let before = items.len();
     let mut write = 0usize;
     let mut read = 0usize;
