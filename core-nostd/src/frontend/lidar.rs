@@ -36,8 +36,19 @@
 //! off the gyro's rates.
 //!
 //! The stage also keeps the [`Travel`] (path length and absolute rotation) of the front-end,
-//! the variable of the motion-uncertainty model ([`MotionNoise`]) that the GPE, the odometry
-//! edges and the loop-closure windows share.
+//! the variable of the motion-uncertainty model ([`MotionNoise`]) that the GPE and the
+//! loop-closure windows share, and the [`Spread`]: the covariance its estimate accumulated,
+//! which the odometry edges carry. A step rests on two measurements: the match, whose error is
+//! the model's (errors of the map matched against, which a scan's own residuals do not show)
+//! plus its own (the inverse of the scan's information, which is small where walls in several
+//! directions pin the pose down and unbounded along a corridor's axis), and the odometry's
+//! prediction, with its own model's covariance scaled as above. The step's covariance is that
+//! of the two fused. So an edge says what the front-end knew: the heading of a robot with a
+//! gyro far better than the matcher's model alone claims, the position along a corridor no
+//! better than the wheels, and a robot whose odometry proves poor (a large scale) keeps the
+//! model's covariance. The model's constants are presets; the scale is measured on this run.
+//! Without a prediction (a LiDAR alone, an odometry gap or stall) the step adds the model's
+//! growth, as the travel does.
 
 use super::gyro_bias::GyroBias;
 use super::icp::{align_with_prior, IcpConfig, IcpResult, MatchError, Prior};
@@ -93,9 +104,67 @@ impl Travel {
     }
 }
 
+/// Covariance accumulated by the front-end's estimate, summed over its steps in the front-end
+/// frame's axes (module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Spread {
+    /// `[x, y, theta]` covariance, front-end axes.
+    pub cov: Cov3,
+}
+
+impl Default for Spread {
+    fn default() -> Self {
+        Spread::ZERO
+    }
+}
+
+/// What a step's estimate rests on besides the motion model (module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepEvidence {
+    /// The scan match's own information (zero when the match failed and the prediction
+    /// stood), front-end axes.
+    pub scan: Matrix3<f64>,
+    /// The information of the odometry's prediction, as scaled for the match, front-end axes.
+    pub prediction: Matrix3<f64>,
+}
+
+impl Spread {
+    /// Nothing accumulated.
+    pub const ZERO: Spread = Spread {
+        cov: Matrix3::new(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    };
+
+    /// The covariance accumulated from `earlier` to `self`, in the axes of a frame whose
+    /// heading in the front-end frame is `heading`.
+    pub fn since_in(&self, earlier: &Spread, heading: f64) -> Cov3 {
+        let (c, s) = (libm::cos(heading), libm::sin(heading));
+        let r = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
+        r.transpose() * (self.cov - earlier.cov) * r
+    }
+
+    /// The covariance one front-end `step` adds. Without `evidence`, the growth of `noise`
+    /// over the step (without the model's floor, which the consumer adds once). With it, the
+    /// matcher's error is the model's plus its own measurement error (the inverse of the
+    /// scan's information: negligible where the scan pins the pose down, unbounded along a
+    /// direction it leaves free), and the step fuses that with the prediction.
+    pub fn of_step(noise: &dyn MotionNoise, step: &Se2, evidence: Option<&StepEvidence>) -> Cov3 {
+        let (d, r) = (libm::hypot(step.x, step.y), libm::fabs(step.theta));
+        let model = noise.covariance(d, r) - noise.covariance(0.0, 0.0);
+        let fused = evidence.and_then(|e| {
+            let own = spd_inverse(&model)?;
+            // (C_scan + C_model)^-1 = I_scan (I_scan + I_model)^-1 I_model, defined even when
+            // the scan's information is singular.
+            let matcher = e.scan * spd_inverse(&(e.scan + own))? * own;
+            let matcher = (matcher + matcher.transpose()) * 0.5;
+            spd_inverse(&(matcher + e.prediction))
+        });
+        fused.unwrap_or(model)
+    }
+}
+
 /// The front-end's motion-uncertainty model: the covariance of a motion as a function of its
 /// path length and rotation.
-pub trait MotionNoise {
+pub trait MotionNoise: core::fmt::Debug {
     /// Covariance of a motion of path length `distance` and rotation `rotation`.
     fn covariance(&self, distance: f64, rotation: f64) -> Cov3;
 
@@ -120,6 +189,8 @@ pub struct LidarParams<'a> {
     /// Matcher motion `[metres, radians]` above which a still odometry counts as stalled;
     /// `None` disables the stall compensation.
     pub stall_motion: Option<[f64; 2]>,
+    /// Uncertainty of the matcher's motion, fused with the prediction's in [`Spread`].
+    pub noise: &'a dyn MotionNoise,
 }
 
 /// Counters of the front-end.
@@ -165,6 +236,7 @@ pub struct LidarFrontend {
     /// Scans of the current still stretch in which the matcher saw motion.
     stall_scans: u32,
     travel: Travel,
+    spread: Spread,
     /// Running mean of the normalized squared difference between the match and the odometry's
     /// prediction over three (1 when the noise model is right); the prediction's covariance is
     /// scaled by it, at least 1.
@@ -195,6 +267,7 @@ impl LidarFrontend {
             stall: Se2::IDENTITY,
             stall_scans: 0,
             travel: Travel::ZERO,
+            spread: Spread::ZERO,
             noise_scale: NOISE_SCALE_MAX,
             noise_samples: 0,
             gyro_bias: GyroBias::new(),
@@ -217,6 +290,11 @@ impl LidarFrontend {
     /// Travel up to the last scan.
     pub fn travel(&self) -> Travel {
         self.travel
+    }
+
+    /// Variance accumulated up to the last scan.
+    pub fn spread(&self) -> Spread {
+        self.spread
     }
 
     /// Counters so far.
@@ -259,6 +337,8 @@ impl LidarFrontend {
             })
             .and_then(|cov| Self::prediction_information(previous.pose.theta, &cov));
         let mut pose = seed;
+        // What the step rests on besides the model, when a prediction took part.
+        let mut evidence = None;
         if !local.is_empty() {
             let turn = libm::fabs(increment.theta);
             let scale = self.noise_scale.max(1.0);
@@ -269,6 +349,10 @@ impl LidarFrontend {
             match Self::match_scan(scan, local, &seed, prior.as_ref(), turn, params) {
                 Ok(r) if r.fitness >= params.min_fitness => {
                     pose = r.pose;
+                    evidence = prior.map(|p| StepEvidence {
+                        scan: r.information,
+                        prediction: p.information,
+                    });
                     if let Some(info) = predicted {
                         self.calibrate(&r, &seed, &info);
                         if let Some(m) = motion {
@@ -279,7 +363,13 @@ impl LidarFrontend {
                         self.counters.icp_degenerate += 1;
                     }
                 }
-                _ => self.counters.icp_failures += 1,
+                _ => {
+                    self.counters.icp_failures += 1;
+                    evidence = prior.map(|p| StepEvidence {
+                        scan: Matrix3::zeros(),
+                        prediction: p.information,
+                    });
+                }
             }
         }
         let step = previous.pose.between(&pose);
@@ -287,6 +377,7 @@ impl LidarFrontend {
         if self.previous.is_some() {
             self.travel.path += libm::sqrt(step.x * step.x + step.y * step.y);
             self.travel.rotation += libm::fabs(step.theta);
+            self.spread.cov += Spread::of_step(params.noise, &step, evidence.as_ref());
         }
         self.pose = pose;
         self.last_step = step;
@@ -416,5 +507,84 @@ impl LidarFrontend {
             self.stall = Se2::IDENTITY;
             self.stall_scans = 0;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Variances growing with path and rotation over a floor, as the mapper's model does.
+    #[derive(Debug)]
+    struct Linear;
+
+    impl MotionNoise for Linear {
+        fn covariance(&self, distance: f64, rotation: f64) -> Cov3 {
+            let xy = 4e-4 * distance + 1e-4 * rotation + 1e-6;
+            let th = 1e-4 * distance + 4e-4 * rotation + 1e-7;
+            Matrix3::from_diagonal(&Vector3::new(xy, xy, th))
+        }
+    }
+
+    #[test]
+    fn without_a_prediction_the_spread_is_the_models_growth() {
+        let steps = [
+            Se2::new(0.1, 0.0, 0.02),
+            Se2::new(0.12, 0.01, -0.05),
+            Se2::new(0.0, 0.0, 0.3),
+        ];
+        let (mut total, mut travel) = (Spread::ZERO, Travel::ZERO);
+        for s in &steps {
+            total.cov += Spread::of_step(&Linear, s, None);
+            travel.path += libm::hypot(s.x, s.y);
+            travel.rotation += libm::fabs(s.theta);
+        }
+        let model = Linear.over(&travel) - Linear.covariance(0.0, 0.0);
+        assert!((total.since_in(&Spread::ZERO, 1.0) - model).norm() < 1e-15);
+        let still = StepEvidence {
+            scan: Matrix3::identity(),
+            prediction: Matrix3::identity(),
+        };
+        assert_eq!(
+            Spread::of_step(&Linear, &Se2::IDENTITY, Some(&still)),
+            Matrix3::zeros()
+        );
+    }
+
+    #[test]
+    fn a_prediction_narrows_the_spread_and_a_free_direction_follows_it() {
+        let step = Se2::new(0.2, 0.0, 0.05);
+        let model = Spread::of_step(&Linear, &step, None);
+        let expect = |a: f64, b: f64| 1.0 / (1.0 / a + 1.0 / b);
+        // A gyro-like prediction (loose position, heading variance 1e-6 rad^2) and a scan that
+        // pins every direction down: the model fused with the prediction.
+        let gyro = Matrix3::from_diagonal(&Vector3::new(1e2, 1e2, 1e6));
+        let sharp = StepEvidence {
+            scan: Matrix3::from_diagonal_element(1e12),
+            prediction: gyro,
+        };
+        let fused = Spread::of_step(&Linear, &step, Some(&sharp));
+        assert!((fused[(2, 2)] - expect(model[(2, 2)], 1e-6)).abs() < 1e-12);
+        assert!((fused[(0, 0)] - expect(model[(0, 0)], 1e-2)).abs() < 1e-9);
+        // A corridor along x: the scan says nothing about x, so the prediction alone decides it.
+        let corridor = StepEvidence {
+            scan: Matrix3::from_diagonal(&Vector3::new(0.0, 1e12, 1e12)),
+            prediction: gyro,
+        };
+        let along = Spread::of_step(&Linear, &step, Some(&corridor));
+        assert!((along[(0, 0)] - 1e-2).abs() < 1e-9);
+        assert!((along[(1, 1)] - fused[(1, 1)]).abs() < 1e-9);
+        // A failed match (no scan information): the prediction's covariance.
+        let failed = StepEvidence {
+            scan: Matrix3::zeros(),
+            prediction: gyro,
+        };
+        let odo = Spread::of_step(&Linear, &step, Some(&failed));
+        assert!((odo - gyro.try_inverse().expect("invertible")).norm() < 1e-12);
+        // Seen from a frame turned by 90 degrees, x and y swap.
+        let mut s = Spread::ZERO;
+        s.cov += along;
+        let turned = s.since_in(&Spread::ZERO, core::f64::consts::FRAC_PI_2);
+        assert!((turned[(1, 1)] - along[(0, 0)]).abs() < 1e-12);
     }
 }

@@ -51,6 +51,7 @@ mod tests {
 
     /// Variance growing with the path, with no floor: a zero travel has no usable covariance,
     /// which takes the newest node out of the running and lets the others compete.
+    #[derive(Debug)]
     struct NoFloor;
 
     impl MotionNoise for NoFloor {
@@ -60,6 +61,7 @@ mod tests {
     }
 
     /// The same with a floor.
+    #[derive(Debug)]
     struct Floored;
 
     impl MotionNoise for Floored {

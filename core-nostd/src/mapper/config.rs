@@ -14,8 +14,9 @@ use nalgebra::Matrix3;
 /// `d` and the absolute rotation `phi` travelled: variances `var_xy_per_m * d +
 /// var_xy_per_rad * phi` for each position axis and `var_theta_per_m * d +
 /// var_theta_per_rad * phi` for the heading, plus the floors. The same model gives the
-/// information of odometry edges, the covariances of the GPE terms and the loop-closure
-/// search window.
+/// covariances of the GPE terms and the loop-closure search window; for the odometry edges the
+/// front-end fuses its growth with the odometry's prediction scan by scan
+/// (`frontend::lidar::Spread`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct FrontendNoise {
@@ -389,6 +390,7 @@ impl MapperConfig {
             turn_reseed: self.turn_reseed,
             turn_reseed_rms: self.turn_reseed_rms,
             stall_motion: self.stall_motion,
+            noise: &self.noise,
         }
     }
 

@@ -2,9 +2,11 @@
 //!
 //! The keyframe decision ([`KeyframeSelector`]) is taken on the front-end pose. The new node
 //! enters the graph at the real-time (GPE) pose, tied to the previous node by an odometry edge:
-//! the front-end motion between the two, with the information of the motion-uncertainty model
-//! over the travel between them. Before that, a pool too full for the node and its edges is
-//! pruned (module `pool`); if no room is made the keyframe is dropped and counted.
+//! the front-end motion between the two, with the covariance the front-end's estimate
+//! accumulated between them ([`Spread`]: the motion-uncertainty model fused with the odometry's
+//! prediction scan by scan) plus the model's floor. Before that, a pool too full for the node
+//! and its edges is pruned (module `pool`); if no room is made the keyframe is dropped and
+//! counted.
 //!
 //! Each node keeps, besides its graph estimate, a [`NodeMeta`]: its serial (stable while graph
 //! indices change under pruning), its stamp, front-end pose and travel, and the submap its scan
@@ -12,7 +14,7 @@
 
 use super::back::{AddNodeError, EdgeFrom, NewEdge};
 use super::{Mapper, NO_SUBMAP};
-use crate::frontend::lidar::{MotionNoise, Travel};
+use crate::frontend::lidar::{Spread, Travel};
 use crate::frontend::{KeyframeConfig, KeyframeSelector};
 use crate::geom::{spd_inverse, Cov3, Info3, Se2};
 use crate::graph::EdgeKind;
@@ -51,6 +53,9 @@ pub(crate) struct FrameState {
     /// Serial of the first frame node of this session (0 for a new map; a session extending
     /// a saved map continues its serials).
     session_first: u32,
+    /// The LiDAR front-end's spread when the newest frame node (of any sensor) joined the
+    /// graph: the next LiDAR keyframe's odometry edge carries what accumulated since.
+    spread_at_newest: Spread,
 }
 
 impl FrameState {
@@ -59,6 +64,7 @@ impl FrameState {
             selector: KeyframeSelector::new(keyframe),
             next_serial: 0,
             session_first: 0,
+            spread_at_newest: Spread::ZERO,
         }
     }
 
@@ -147,6 +153,7 @@ impl Mapper<'_> {
             }
         }
         self.st.frames.next_serial += 1;
+        self.st.frames.spread_at_newest = self.st.frontend.spread();
         self.st.stats.keyframes += 1;
         Some(serial)
     }
@@ -172,10 +179,12 @@ impl Mapper<'_> {
         link: Link,
     ) -> Option<u32> {
         let travel = self.st.frontend.travel();
+        let spread = self.st.frontend.spread();
         let edge = match link {
             Link::Odometry => self.newest_node().map(|prev| {
                 let prev = prev.tie;
-                let cov = self.cfg.noise.over(&travel.since(&prev.travel));
+                let grown = spread.since_in(&self.st.frames.spread_at_newest, prev.frontend.theta);
+                let cov = self.cfg.noise.covariance(0.0, 0.0) + grown;
                 NewEdge {
                     from: EdgeFrom::Newest,
                     z: prev.frontend.between(pose),

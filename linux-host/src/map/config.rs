@@ -79,7 +79,8 @@ pub struct IcpSection {
     /// odometry stream) is taken off the odometry's next increment.
     pub stall_compensation: bool,
     /// The reference ICP matches against (the local point map) keeps what two keyframes saw
-    /// within this much path, metres; 0 restarts it every 3 m from the two newest submaps.
+    /// within this much path, metres; 0 restarts it every 3 m (refilled from the two newest
+    /// submaps, or in the airport profile from the current scan alone).
     pub local_map_span: f64,
 }
 
