@@ -290,7 +290,7 @@ impl Default for MapperConfig {
             local_radius: 30.0,
             local_reset: 3.0,
             local_voxel: 0.05,
-            local_span: 0.0,
+            local_span: 30.0,
             local_from_submaps: true,
             local_min_log_odds: 10,
             grid: GridParams::LARGE,
@@ -312,13 +312,17 @@ impl MapperConfig {
     /// submaps, a 10 m LiDAR, loop searches within 1.5 m and 0.5 rad (the drift between
     /// revisits of a small home is small), windows from the motion since the last loop
     /// closure (the cheaper search), and rotated turn seeds only for a primary match above
-    /// 5 cm RMS. `docs/benchmarks.md` has the measurements behind the front-end choices.
+    /// 5 cm RMS. Its local point map restarts every 3 m, refilled from the newest submaps:
+    /// the generated buildings that showed the sliding map's worth are mapped with the other
+    /// profiles, and in the ten-session home test sliding was level on average but not in
+    /// its late sessions. `docs/benchmarks.md` has the measurements behind these choices.
     pub fn home() -> Self {
         let base = MapperConfig::default();
         MapperConfig {
             grid: GridParams::HOME,
             submap_length: 1.5,
             max_range: 10.0,
+            local_span: 0.0,
             turn_reseed_rms: 0.05,
             loops: LoopConfig {
                 window_max: 1.5,
@@ -331,7 +335,10 @@ impl MapperConfig {
         }
     }
 
-    /// The `office` profile (an office floor, [`crate::profile::OFFICE`]): the defaults.
+    /// The `office` profile (an office floor, [`crate::profile::OFFICE`]): the defaults. The
+    /// front-end's local point map slides over the last 30 m of path (`local_span`, the
+    /// local map's radius): it keeps the walls the LiDAR saw on the way, which a restart
+    /// every few metres drops, while no point older than 30 m of drift stays in it.
     pub fn office() -> Self {
         MapperConfig::default()
     }
@@ -340,14 +347,13 @@ impl MapperConfig {
     /// submaps at 10 cm, scans voxelised at 10 cm, a keyframe every 0.5 m and a 1 m pruning
     /// cell, so that the graph of a 60,000 m^2 hall fits the profile's pools.
     ///
-    /// The local point map slides over the last 30 m of path (`local_span`, the LiDAR's
-    /// reach): a guide robot scanning at 1 Hz in halls wider than its range needs the far
-    /// walls and the sparse returns of glass that the scans of the last few metres alone do
-    /// not hold, and a restart refilled from the submaps' cells would not either (10 cm cells
-    /// of a wall at a slant to the grid form a staircase whose centres leave the heading
-    /// nearly free and tilt it where two submaps meet). With `local_span` = 0 it restarts
-    /// from the current scan (`local_from_submaps` off). `docs/benchmarks.md` has the
-    /// measurements; the office and home profiles still restart (the same section says why).
+    /// The local point map slides over the last 30 m of path, as in the office profile: a
+    /// guide robot scanning at 1 Hz in halls wider than its range needs the far walls and the
+    /// sparse returns of glass that the scans of the last few metres alone do not hold, and a
+    /// restart refilled from the submaps' cells would not either (10 cm cells of a wall at a
+    /// slant to the grid form a staircase whose centres leave the heading nearly free and
+    /// tilt it where two submaps meet). With `local_span` = 0 it restarts from the current
+    /// scan (`local_from_submaps` off). `docs/benchmarks.md` has the measurements.
     pub fn airport() -> Self {
         let base = MapperConfig::office();
         MapperConfig {
@@ -368,7 +374,6 @@ impl MapperConfig {
                 prune_cell: 1.0,
                 ..base.backend
             },
-            local_span: 30.0,
             local_from_submaps: false,
             ..base
         }
