@@ -19,7 +19,7 @@ use nalgebra::Matrix3;
 
 use super::chow_liu::{maximum_spanning_tree, MAX_TREE_NODES};
 use super::dense::DenseMatrix;
-use crate::geom::{information_heuristic, spd_inverse, symmetrize, Info3, Se2};
+use crate::geom::{information_heuristic, spd_inverse, symmetrize, yaw_rotation, Info3, Se2};
 
 /// Largest Markov blanket handled (with the eliminated node, `3 (k + 1)` fits
 /// [`super::dense::MAX_DIM`]).
@@ -110,12 +110,8 @@ fn factor_jacobians_trig(
         .get(usize::from(f.to))
         .ok_or(MarginalizeError::BadIndex)?;
     let (ja, jb) = xi.between_jacobians_trig(ci, si, xj);
-    let (c, s) = (
-        libm::cos(f.measurement.theta),
-        libm::sin(f.measurement.theta),
-    );
     // Rotation by -theta_z on the translational rows.
-    let rz_t = Matrix3::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
+    let rz_t = rotation_transpose(f.measurement.theta);
     Ok((rz_t * ja, rz_t * jb))
 }
 
@@ -303,8 +299,7 @@ fn relative_covariance(
 
 /// `R(-theta)` acting on the translational part.
 fn rotation_transpose(theta: f64) -> Matrix3<f64> {
-    let (c, s) = (libm::cos(theta), libm::sin(theta));
-    Matrix3::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0)
+    yaw_rotation(libm::cos(theta), libm::sin(theta)).transpose()
 }
 
 /// Information of an edge with measurement `z` whose parameters `(x, y, theta)` have covariance

@@ -43,10 +43,10 @@
 //! plus its own (the inverse of the scan's information, which is small where walls in several
 //! directions pin the pose down and unbounded along a corridor's axis), and the odometry's
 //! prediction, with its own model's covariance scaled as above. The step's covariance is that
-//! of the two fused. So an edge says what the front-end knew: the heading of a robot with a
-//! gyro far better than the matcher's model alone claims, the position along a corridor no
-//! better than the wheels, and a robot whose odometry proves poor (a large scale) keeps the
-//! model's covariance. The model's constants are presets; the scale is measured on this run.
+//! of the two fused. So an edge says what the front-end knew: the heading of a robot whose
+//! gyro keeps a small scale better than the matcher's model alone claims, the position along
+//! a corridor no better than the wheels, and a robot whose odometry proves poor (a large
+//! scale) about the model's covariance. The model's constants are presets; the scale is measured on this run.
 //! Without a prediction (a LiDAR alone, an odometry gap or stall) the step adds the model's
 //! growth, as the travel does.
 
@@ -57,7 +57,7 @@ use super::pointmap::PointMap;
 use super::scan::ScanPoint;
 use nalgebra::{Matrix3, Vector3};
 
-use crate::geom::{spd_inverse, wrap_angle, Cov3, Se2};
+use crate::geom::{cov_in_frame, cov_out_of_frame, spd_inverse, wrap_angle, Cov3, Se2};
 
 /// Share of a scan interval whose heading must come from the gyro for the match to measure the
 /// gyro's bias (the rest: a wheel sample at either end without a live gyro).
@@ -137,9 +137,7 @@ impl Spread {
     /// The covariance accumulated from `earlier` to `self`, in the axes of a frame whose
     /// heading in the front-end frame is `heading`.
     pub fn since_in(&self, earlier: &Spread, heading: f64) -> Cov3 {
-        let (c, s) = (libm::cos(heading), libm::sin(heading));
-        let r = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
-        r.transpose() * (self.cov - earlier.cov) * r
+        cov_in_frame(&(self.cov - earlier.cov), heading)
     }
 
     /// The covariance one front-end `step` adds. Without `evidence`, the growth of `noise`
@@ -292,7 +290,7 @@ impl LidarFrontend {
         self.travel
     }
 
-    /// Variance accumulated up to the last scan.
+    /// Covariance accumulated up to the last scan (see [`Spread`]).
     pub fn spread(&self) -> Spread {
         self.spread
     }
@@ -410,9 +408,7 @@ impl LidarFrontend {
     /// covariance `cov` is in the frame of the previous pose (heading `heading`). `None` when
     /// it is not invertible.
     fn prediction_information(heading: f64, cov: &Cov3) -> Option<Matrix3<f64>> {
-        let (c, s) = (libm::cos(heading), libm::sin(heading));
-        let r = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
-        spd_inverse(&(r * cov * r.transpose()))
+        spd_inverse(&cov_out_of_frame(cov, heading))
     }
 
     /// Updates the odometry noise scale from one match `r` against the prediction `seed`

@@ -8,7 +8,7 @@
 
 use nalgebra::{Cholesky, Matrix3, Vector3};
 
-use super::se2::Se2;
+use super::se2::{yaw_rotation, Se2};
 
 /// Covariance of a pose `[x, y, theta]` (m^2, m rad, rad^2).
 pub type Cov3 = Matrix3<f64>;
@@ -91,9 +91,22 @@ pub fn symmetrize(m: &Matrix3<f64>) -> Matrix3<f64> {
 /// position would, seen from a keyframe turned by 90 degrees, pin its position along the
 /// corridor instead.
 pub fn information_in_frame_of(info: &Info3, z: &Se2) -> Info3 {
-    let (c, s) = (libm::cos(z.theta), libm::sin(z.theta));
-    let j = Matrix3::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
+    let j = yaw_rotation(libm::cos(z.theta), libm::sin(z.theta)).transpose();
     symmetrize(&(j * info * j.transpose()))
+}
+
+/// `cov`, given in the axes of a frame whose heading is `heading`, in the axes that frame's
+/// heading is measured in: `R cov R^T`.
+pub fn cov_out_of_frame(cov: &Cov3, heading: f64) -> Cov3 {
+    let r = yaw_rotation(libm::cos(heading), libm::sin(heading));
+    r * cov * r.transpose()
+}
+
+/// The converse of [`cov_out_of_frame`]: `cov` in the axes of the frame of heading
+/// `heading`, `R^T cov R`.
+pub fn cov_in_frame(cov: &Cov3, heading: f64) -> Cov3 {
+    let r = yaw_rotation(libm::cos(heading), libm::sin(heading));
+    r.transpose() * cov * r
 }
 
 /// Leading principal minors `(m1, m2, m3)` of the symmetric part of `m`; `m` is positive

@@ -4,11 +4,11 @@ mod covariance;
 mod se2;
 
 pub use covariance::{
-    chi2_quantile, information_heuristic, information_in_frame_of, pose_squared_mahalanobis,
-    spd_inverse, squared_mahalanobis, symmetrize, zero_constraint_information, Cov3, Info3,
-    UncertainPose, NEAR_SINGULAR_RATIO,
+    chi2_quantile, cov_in_frame, cov_out_of_frame, information_heuristic, information_in_frame_of,
+    pose_squared_mahalanobis, spd_inverse, squared_mahalanobis, symmetrize,
+    zero_constraint_information, Cov3, Info3, UncertainPose, NEAR_SINGULAR_RATIO,
 };
-pub use se2::{wrap_angle, JacobianPair, Se2};
+pub use se2::{wrap_angle, yaw_rotation, JacobianPair, Se2};
 
 /// `libm::floorf(x) as i32`, without the float floor: truncate, then step down when the
 /// truncation went up. Equal to it for every `f32` (NaN gives 0, out-of-range values

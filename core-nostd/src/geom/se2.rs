@@ -9,6 +9,14 @@ use core::ops::Mul;
 
 use nalgebra::{Matrix3, Vector2, Vector3};
 
+/// The rotation about the vertical axis whose cosine and sine are `c` and `s`: on a pose
+/// vector `[x, y, theta]` it turns the translation and keeps the heading, on a 3-D vector it
+/// turns it about `z`. Its transpose is the rotation back.
+#[inline]
+pub fn yaw_rotation(c: f64, s: f64) -> Matrix3<f64> {
+    Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0)
+}
+
 /// Wraps an angle to `(-pi, pi]`.
 ///
 /// Uses the IEEE remainder from `libm`, so x86-64 and ARMv7 give the same bits.
@@ -137,7 +145,7 @@ impl Se2 {
             0.0,
             1.0,
         );
-        let jb = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
+        let jb = yaw_rotation(c, s);
         (ja, jb)
     }
 
@@ -179,7 +187,7 @@ impl Se2 {
             0.0,
             -1.0,
         );
-        let jb = Matrix3::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
+        let jb = yaw_rotation(c, s).transpose();
         (ja, jb)
     }
 

@@ -11,7 +11,7 @@
 
 use nalgebra::{Matrix3, Vector3};
 
-use crate::geom::{spd_inverse, symmetrize, wrap_angle, Cov3, Se2};
+use crate::geom::{cov_out_of_frame, spd_inverse, symmetrize, wrap_angle, Cov3, Se2};
 
 /// Most terms in one problem.
 pub const MAX_TERMS: usize = 6;
@@ -31,11 +31,9 @@ impl PoseTerm {
     /// A term whose covariance `local` is expressed in the frame of `target` (as compounded
     /// covariances are); it is rotated into the world frame.
     pub fn from_local(target: Se2, local: &Cov3, huber: f64) -> PoseTerm {
-        let (c, s) = (libm::cos(target.theta), libm::sin(target.theta));
-        let r = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
         PoseTerm {
             target,
-            cov: symmetrize(&(r * local * r.transpose())),
+            cov: symmetrize(&cov_out_of_frame(local, target.theta)),
             huber,
         }
     }

@@ -373,7 +373,7 @@ impl CameraExtrinsic {
         let z = Vector3::new(ct, 0.0, st);
         let y = Vector3::new(st, 0.0, -ct);
         let x = Vector3::new(0.0, -1.0, 0.0);
-        let yaw_rot = Matrix3::new(cy, -sy, 0.0, sy, cy, 0.0, 0.0, 0.0, 1.0);
+        let yaw_rot = crate::geom::yaw_rotation(cy, sy);
         let rotation = yaw_rot * Matrix3::from_columns(&[x, y, z]);
         Self {
             rotation,

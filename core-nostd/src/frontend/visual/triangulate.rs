@@ -15,7 +15,7 @@
 use nalgebra::{Matrix3, Vector2, Vector3};
 
 use super::camera::{CameraExtrinsic, CameraModel};
-use crate::geom::Se2;
+use crate::geom::{yaw_rotation, Se2};
 
 /// Acceptance limits of a triangulated point.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -88,7 +88,7 @@ impl CameraPose {
     /// The camera mounted by `extrinsic` on a robot at planar pose `robot` (on the floor).
     pub fn of_robot(robot: &Se2, extrinsic: &CameraExtrinsic) -> Self {
         let (s, c) = (libm::sin(robot.theta), libm::cos(robot.theta));
-        let yaw = Matrix3::new(c, -s, 0.0, s, c, 0.0, 0.0, 0.0, 1.0);
+        let yaw = yaw_rotation(c, s);
         let base = Vector3::new(robot.x, robot.y, 0.0);
         CameraPose {
             centre: base + yaw * extrinsic.translation(),

@@ -47,7 +47,7 @@ pub(crate) fn reprojection(
     let r = model.project(&p_cam)? - px;
     let a = model.jacobian(&p_cam)? * mount.rotation().transpose();
     // dq/dP is the transposed heading rotation; dq/d(x, y, theta) in columns.
-    let rot_t = Matrix3::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0);
+    let rot_t = crate::geom::yaw_rotation(c, s).transpose();
     let dq_dpose = Matrix3::new(-c, -s, q.y, s, -c, -q.x, 0.0, 0.0, 0.0);
     let (jx, jl) = (a * dq_dpose, a * rot_t);
     // One NaN would poison every block it touches; a sum is finite only if all terms are.
