@@ -10,7 +10,8 @@
 //! had to give way to it ([`crate::solver::leave_out_gain`]).
 //!
 //! **Groups.** A group is one revisit of one place: the loop edges to one anchor whose keyframes
-//! follow each other by at most [`GAP`] graph nodes, at most [`MAX_GROUP`] edges. A group is
+//! follow each other by at most [`GAP`] graph nodes, at most [`MAX_GROUP`] edges (fewer in a
+//! pool too small for the test of that many, see `max_group`). A group is
 //! tested once it is complete (the newest node lies more than [`GAP`] nodes past its last
 //! keyframe), so a revisit is judged as a whole.
 //!
@@ -179,6 +180,7 @@ impl Round {
 /// newest group, `head[a]` that group's last edge.
 fn group_edges(graph: &PoseGraph<'_>, s: &mut PruneScratch<'_>) {
     let n = graph.node_count();
+    let longest = max_group(s.node_information.len());
     s.order.iter_mut().take(n).for_each(|o| *o = NONE);
     for (k, e) in graph.edges().iter().enumerate() {
         if 2 * k + 1 >= s.next.len() {
@@ -197,7 +199,7 @@ fn group_edges(graph: &PoseGraph<'_>, s: &mut PruneScratch<'_>) {
                 .edges()
                 .get(last)
                 .is_some_and(|l| e.to.0 >= l.to.0 && e.to.0 - l.to.0 <= GAP);
-            close && chain_len(s, open as usize) < MAX_GROUP
+            close && chain_len(s, open as usize) < longest
         };
         if joins {
             let last = s.head[a] as usize;
@@ -211,6 +213,16 @@ fn group_edges(graph: &PoseGraph<'_>, s: &mut PruneScratch<'_>) {
         }
         s.head[a] = k as u32;
     }
+}
+
+/// Most edges of a group whose test fits a dense scratch of `scratch` values (`(3 m)^2` for `m`
+/// edges; the scratch is the pruning's per-node array): [`MAX_GROUP`] in the profiles' pools, so
+/// a small pool tests a long revisit in parts rather than not at all.
+fn max_group(scratch: usize) -> usize {
+    (1..=MAX_GROUP)
+        .rev()
+        .find(|m| 9 * m * m <= scratch)
+        .unwrap_or(1)
 }
 
 /// Edges in the group that starts at edge `first`.
@@ -337,6 +349,17 @@ mod tests {
             edges += r.edges;
         }
         panic!("no end");
+    }
+
+    #[test]
+    fn a_group_is_as_long_as_its_test_fits_the_scratch() {
+        // The core tests' 512-node pool: 21 x 21 values at most, 7 edges.
+        assert_eq!(max_group(512), 7);
+        assert_eq!(max_group(9 * 7 * 7), 7);
+        assert_eq!(max_group(9 * 7 * 7 - 1), 6);
+        // The smallest profile (4,096 nodes) holds a full group.
+        assert_eq!(max_group(4096), MAX_GROUP);
+        assert_eq!(max_group(0), 1);
     }
 
     #[test]
